@@ -1,0 +1,48 @@
+# Two entry points for a fresh Debian 12 machine (as root): `make demo` and `make test`.
+# Both set everything up first; a second run only re-installs when pyproject.toml changed.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.kinreg-installed
+OUT    ?= out/demo
+
+.PHONY: setup demo test test-slow test-all lint bench clean sample-data
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup-system.sh
+	bash scripts/setup-system.sh
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade "pip>=25.1"
+	$(BIN)/python -m pip install -q -e ".[cholmod]" --group dev
+	touch $(STAMP)
+
+demo: setup
+	rm -rf $(OUT)
+	$(BIN)/kinreg info sample_data/run_trajectory.txt
+	$(BIN)/kinreg info sample_data/run_cloud.laz
+	$(BIN)/kinreg slice --trajectory sample_data/run_trajectory.txt --cloud sample_data/run_cloud.laz \
+		--out $(OUT)/sequence.e57
+	@echo "demo output in $(OUT)"
+
+test: setup
+	$(BIN)/python -m pytest -m "not slow" -q
+
+test-slow: setup
+	$(BIN)/python -m pytest -m "slow" -q
+
+test-all: setup
+	$(BIN)/python -m pytest -q
+
+lint: setup
+	$(BIN)/ruff check kinreg cli tests
+	$(BIN)/mypy
+
+sample-data: setup
+	$(BIN)/python sample_data/simulate.py --out sample_data
+
+bench: setup
+	$(BIN)/python benchmarks/bench_ingest.py
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

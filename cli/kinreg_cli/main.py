@@ -1,0 +1,160 @@
+"""The ``kinreg`` command: parses arguments, loads the configuration, calls the library, renders
+progress and tables. No computation lives here."""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Any
+
+import click
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+import kinreg
+from kinreg.config import KinregConfig, WindowMode, format_toml, load_config
+from kinreg.errors import KinregError
+from kinreg_cli.progress import RichProgress
+
+app = typer.Typer(
+    name="kinreg",
+    help="Drift correction and block adjustment of kinematic laser scans via quasi-static scans.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+out = Console()
+
+CLOUD_SUFFIXES = {".las", ".laz", ".e57"}
+
+
+def _version(value: bool) -> None:
+    if value:
+        out.print(f"kinreg {kinreg.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")
+    ] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log what each stage does.")] = False,
+) -> None:
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="kinreg: %(levelname)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def _config(path: Path | None, overrides: dict[str, Any]) -> KinregConfig:
+    return load_config(path, overrides)
+
+
+@app.command()
+def info(
+    file: Annotated[Path, typer.Argument(help="A trajectory (GeoSLAM, TUM, PLY, CSV) or a cloud (LAS/LAZ/E57).")],
+    full: Annotated[
+        bool, typer.Option("--full", help="Stream the whole cloud for its time range and order.")
+    ] = False,
+    trajectory_format: Annotated[
+        str, typer.Option("--format", help="Trajectory format: auto, geoslam, tum, ply, csv.")
+    ] = "auto",
+) -> None:
+    """What a trajectory or cloud file contains: counts, time range, extent, fields."""
+    from kinreg.inspect import describe_cloud, describe_trajectory
+
+    if file.suffix.lower() in CLOUD_SUFFIXES:
+        rows = describe_cloud(file, full=full, progress=RichProgress(console) if full else None)
+    else:
+        rows = describe_trajectory(file, None if trajectory_format == "auto" else trajectory_format)
+    table = Table(title=str(file), show_header=False, title_justify="left")
+    table.add_column("", style="bold")
+    table.add_column("")
+    for key, value in rows:
+        table.add_row(escape(key), escape(value))
+    out.print(table)
+
+
+@app.command("slice")
+def slice_command(
+    trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],
+    cloud: Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")],
+    out_path: Annotated[Path, typer.Option("--out", "-o", help="The E57 sequence to write.")],
+    window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
+    mode: Annotated[WindowMode | None, typer.Option("--mode", help="How windows are cut.")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output.")] = False,
+) -> None:
+    """Slice a kinematic run into quasi-static scans and export them as one E57 sequence."""
+    from kinreg.pipeline import slice_to_e57
+
+    cfg = _config(config, {"slicing.window_s": window_s, "slicing.mode": mode})
+    summary = slice_to_e57(trajectory, cloud, out_path, cfg, overwrite=overwrite, progress=RichProgress(console))
+    table = Table(title="quasi-static sequence", show_header=False, title_justify="left")
+    table.add_row("scans", f"{summary.n_scans}")
+    table.add_row("points in scans", f"{summary.n_points_in_scans:,}")
+    table.add_row("points outside trajectory", f"{summary.n_points_outside_trajectory:,} "
+                  f"({100 * summary.share_outside:.1f} %)")
+    table.add_row("windows skipped", f"{len(summary.skipped)} ({summary.n_points_in_skipped_windows:,} points)")
+    table.add_row("written", str(out_path))
+    out.print(table)
+
+
+@app.command("config")
+def config_command(
+    defaults: Annotated[bool, typer.Option("--defaults", help="Print the default configuration.")] = False,
+    config: Annotated[Path | None, typer.Option("--config", help="Resolve and print this file.")] = None,
+) -> None:
+    """Print the default (or a resolved) configuration as TOML."""
+    if not defaults and config is None:
+        raise click.UsageError("give --defaults or --config FILE")
+    out.print(format_toml(load_config(None if defaults else config)), markup=False, highlight=False)
+
+
+def _register_optional_commands() -> None:
+    """Commands from modules that may not be present in every build."""
+    try:
+        from kinreg_cli import calibrate as calibrate_module
+    except ImportError:
+        return
+    app.command("calibrate")(calibrate_module.calibrate)
+    app.command("plan-calibration")(calibrate_module.plan_calibration)
+
+
+_register_optional_commands()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: one clean line and exit code 1 for every kinreg error, no traceback."""
+    try:
+        code = app(args=argv, standalone_mode=False)
+    except KinregError as e:
+        console.print(f"kinreg: error: {e}", markup=False, highlight=False)
+        sys.exit(1)
+    except click.exceptions.Abort:
+        console.print("kinreg: interrupted", markup=False)
+        sys.exit(130)
+    except click.ClickException as e:
+        e.show()
+        sys.exit(e.exit_code)
+    except OSError as e:
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        console.print(f"kinreg: error: {where}{e.strerror or e}", markup=False, highlight=False)
+        sys.exit(1)
+    except Exception as e:  # an internal error: say so in one line unless debugging
+        if os.environ.get("KINREG_DEBUG"):
+            raise
+        console.print(
+            f"kinreg: internal error: {type(e).__name__}: {e} (set KINREG_DEBUG=1 for the traceback)",
+            markup=False,
+            highlight=False,
+        )
+        sys.exit(2)
+    sys.exit(code if isinstance(code, int) else 0)

@@ -1,0 +1,3 @@
+import logging
+
+logging.getLogger("kinreg").addHandler(logging.NullHandler())

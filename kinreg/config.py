@@ -1,0 +1,188 @@
+"""Configuration: one typed model, a section per stage, loaded from TOML.
+
+Each stage receives only its own section. ``kinreg config --defaults`` prints
+:func:`format_toml` of :class:`KinregConfig` with its defaults; every run writes the resolved
+configuration next to its results.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import sys
+import types
+import typing
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from kinreg.errors import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+# Bump when a key is renamed or removed (adding keys with defaults does not need a bump).
+CONFIG_SCHEMA_VERSION = 1
+
+
+class WindowMode(enum.Enum):
+    """How the trajectory is cut into quasi-static scans."""
+
+    DURATION = "duration"  # windows of about `window_s` seconds
+    PATH = "path"  # windows of about `window_path_m` metres of path
+    POINTS = "points"  # windows of about `window_points` points
+
+
+@dataclasses.dataclass(frozen=True)
+class InputConfig:
+    trajectory_format: str = "auto"  # auto, geoslam, tum, ply or csv
+    trajectory_columns: str = ""  # CSV only, e.g. "time=gps_time,x=E,y=N,z=H,qw=q0,qx=q1,qy=q2,qz=q3"
+    chunk_points: int = 2_000_000  # points decoded per block; bounds memory, not results
+
+
+@dataclasses.dataclass(frozen=True)
+class SlicingConfig:
+    mode: WindowMode = WindowMode.DURATION
+    window_s: float = 6.0  # the seed used 5-7 s windows (26.5 min -> 231 scans)
+    window_path_m: float = 6.0
+    window_points: int = 1_000_000
+    min_points: int = 2000  # windows with fewer points are reported and skipped
+    temp_dir: str = ""  # where per-window points are spilled; "" means the system default
+
+
+@dataclasses.dataclass(frozen=True)
+class KinregConfig:
+    input: InputConfig = dataclasses.field(default_factory=InputConfig)
+    slicing: SlicingConfig = dataclasses.field(default_factory=SlicingConfig)
+
+
+C = TypeVar("C")
+
+
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _coerce(value: Any, kind: Any, where: str) -> Any:
+    if isinstance(kind, type) and issubclass(kind, enum.Enum):
+        try:
+            return kind(value)
+        except ValueError:
+            allowed = ", ".join(str(m.value) for m in kind)
+            raise ConfigError(f"{where}: '{value}' is not one of {allowed}") from None
+    origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        return value
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if kind is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _build_section(cls: type[C], values: Mapping[str, Any], where: str) -> C:
+    hints = _field_types(cls)
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"[{where}]: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
+    kwargs = {k: _coerce(v, hints[k], f"[{where}] {k}") for k, v in values.items()}
+    section = cls(**kwargs)
+    _check_section(section, where)
+    return section
+
+
+def _check_section(section: Any, where: str) -> None:
+    for f in dataclasses.fields(section):
+        v = getattr(section, f.name)
+        positive = f.name.endswith(("_s", "_m", "_points")) and not f.name.startswith("min_")
+        if positive and isinstance(v, int | float) and not v > 0:
+            raise ConfigError(f"[{where}] {f.name}: must be positive, got {v}")
+        if f.name.startswith("min_") and isinstance(v, int | float) and v < 0:
+            raise ConfigError(f"[{where}] {f.name}: must not be negative, got {v}")
+
+
+def config_from_mapping(data: Mapping[str, Any]) -> KinregConfig:
+    """Build a config from nested mappings (sections of keys); missing keys keep defaults."""
+    sections = {f.name: f for f in dataclasses.fields(KinregConfig)}
+    hints = _field_types(KinregConfig)
+    data = {k: v for k, v in data.items() if k != "schema_version"}
+    unknown = sorted(set(data) - set(sections))
+    if unknown:
+        raise ConfigError(f"unknown section(s) {', '.join(unknown)} (known: {', '.join(sections)})")
+    kwargs = {}
+    for name in sections:
+        values = data.get(name, {})
+        if not isinstance(values, Mapping):
+            raise ConfigError(f"[{name}] must be a table of keys")
+        kwargs[name] = _build_section(hints[name], values, name)
+    return KinregConfig(**kwargs)
+
+
+def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | None = None) -> KinregConfig:
+    """Defaults, updated by the TOML file at ``path`` (if any), then by ``overrides``.
+
+    ``overrides`` maps ``"section.key"`` to a value (from the command line).
+    Raises :class:`ConfigError` naming the file for syntax errors, unknown keys, bad values.
+    """
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            with open(p, "rb") as f:
+                data = tomllib.load(f)
+        except FileNotFoundError:
+            raise ConfigError("file not found", p) from None
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"invalid TOML: {e}", p) from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(f"cannot read: {e}", p) from None
+    for dotted, value in (overrides or {}).items():
+        if value is None:
+            continue
+        section, _, key = dotted.partition(".")
+        data.setdefault(section, {})[key] = value.value if isinstance(value, enum.Enum) else value
+    try:
+        return config_from_mapping(data)
+    except ConfigError as e:
+        raise ConfigError(e.reason, path) from None
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, enum.Enum):
+        v = v.value
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, float):
+        return repr(v)
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return str(v)
+
+
+def format_toml(config: KinregConfig) -> str:
+    """The configuration as TOML text (readable back by :func:`load_config`)."""
+    lines = [f"schema_version = {CONFIG_SCHEMA_VERSION}", ""]
+    for section in dataclasses.fields(config):
+        lines.append(f"[{section.name}]")
+        values = getattr(config, section.name)
+        for f in dataclasses.fields(values):
+            lines.append(f"{f.name} = {_toml_value(getattr(values, f.name))}")
+        lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,79 @@
+"""Opening point clouds of any supported format as a stream of chunks.
+
+Every reader yields :class:`~kinreg.types.CloudChunk` blocks in file order: float64 coordinates
+in the object frame, float64 times. Nothing assumes the cloud fits in memory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+from kinreg.errors import CloudError
+from kinreg.types import CloudChunk
+
+DEFAULT_CHUNK_POINTS = 2_000_000
+
+
+@dataclass(frozen=True)
+class CloudInfo:
+    """What a cloud file holds, read from its header(s) without decoding the points.
+
+    ``bounds_min``/``bounds_max`` are object-frame (x, y, z) where the header states them.
+    ``time_range_s`` is filled only where the header states it (LAS does not).
+    """
+
+    path: str
+    format: str
+    n_points: int
+    fields: tuple[str, ...]
+    has_time: bool
+    n_scans: int = 1
+    bounds_min: tuple[float, float, float] | None = None
+    bounds_max: tuple[float, float, float] | None = None
+    time_range_s: tuple[float, float] | None = None
+    details: dict[str, str] = field(default_factory=dict)
+
+
+class CloudReader(Protocol):
+    """A streaming reader. Use as a context manager; iterate ``iter_chunks`` once or more."""
+
+    path: Path
+    info: CloudInfo
+
+    def iter_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[CloudChunk]: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> CloudReader: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+LAS_SUFFIXES = {".las", ".laz"}
+E57_SUFFIXES = {".e57"}
+
+
+def open_cloud(path: str | Path, require_time: bool = True) -> CloudReader:
+    """Open a LAS/LAZ or E57 cloud for streaming.
+
+    With ``require_time`` a file without per-point times (LAS ``gps_time``, E57 ``timeStamp``)
+    raises :class:`CloudError` naming the file.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise CloudError("file not found", p)
+    if p.is_dir():
+        raise CloudError("is a folder, not a point cloud file", p)
+    suffix = p.suffix.lower()
+    if suffix in LAS_SUFFIXES:
+        from kinreg.io.las import LasCloudReader
+
+        return LasCloudReader(p, require_time=require_time)
+    if suffix in E57_SUFFIXES:
+        from kinreg.io.e57 import E57CloudReader
+
+        return E57CloudReader(p, require_time=require_time)
+    raise CloudError(f"unsupported point cloud format '{p.suffix}' (expected .las, .laz or .e57)", p)

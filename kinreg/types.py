@@ -1,0 +1,145 @@
+"""The small frozen types that cross stage boundaries. Defined here and nowhere else."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kinreg.errors import TrajectoryError
+from kinreg.geometry import FloatArray, Pose, interpolate_poses
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Time-ordered platform poses ``T_obj_platform`` (strictly increasing float64 seconds).
+
+    ``extra`` holds user columns of the source file (shape ``(N, k)``, names in
+    ``extra_names``) so that writers can reproduce them; readers may leave it empty.
+    """
+
+    stamps_s: FloatArray
+    poses: Pose
+    source: str | None = None
+    extra: FloatArray | None = None
+    extra_names: tuple[str, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.stamps_s)
+
+    @property
+    def t_start_s(self) -> float:
+        return float(self.stamps_s[0])
+
+    @property
+    def t_end_s(self) -> float:
+        return float(self.stamps_s[-1])
+
+    @property
+    def duration_s(self) -> float:
+        return self.t_end_s - self.t_start_s
+
+    def path_length_m(self) -> float:
+        """Length of the polyline through the positions."""
+        return float(np.linalg.norm(np.diff(self.poses.t_xyz, axis=0), axis=1).sum())
+
+    def covers(self, query_s: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Which query times lie inside the trajectory's time range."""
+        q = np.asarray(query_s, dtype=np.float64)
+        return (q >= self.stamps_s[0]) & (q <= self.stamps_s[-1])
+
+    def pose_at(self, query_s: float | NDArray[np.float64]) -> Pose:
+        """Interpolated poses (linear position, SLERP rotation) at ``query_s``.
+
+        Raises :class:`TrajectoryError` if any time lies outside the trajectory's range.
+        """
+        q = np.asarray(query_s, dtype=np.float64)
+        inside = self.covers(q)
+        if not np.all(inside):
+            bad = float(np.atleast_1d(q)[~np.atleast_1d(inside)][0])
+            raise TrajectoryError(
+                f"time {bad:.6f} s is outside the trajectory's range "
+                f"[{self.t_start_s:.6f}, {self.t_end_s:.6f}] s",
+                self.source,
+            )
+        return interpolate_poses(self.stamps_s, self.poses, q)
+
+    def nearest_index(self, query_s: float) -> int:
+        """Index of the trajectory row nearest in time to ``query_s``."""
+        i = int(np.searchsorted(self.stamps_s, query_s))
+        if i <= 0:
+            return 0
+        if i >= len(self.stamps_s):
+            return len(self.stamps_s) - 1
+        return i if self.stamps_s[i] - query_s < query_s - self.stamps_s[i - 1] else i - 1
+
+
+@dataclass(frozen=True, eq=False)
+class CloudChunk:
+    """A block of points in the object frame: float64 coordinates, float64 times.
+
+    ``first_index`` is the position of the chunk's first point in the file, so that point order
+    can be reproduced. ``intensity`` is optional (``None`` where the file has none).
+    """
+
+    xyz: FloatArray
+    stamps_s: FloatArray | None
+    intensity: NDArray[np.float32] | None = None
+    first_index: int = 0
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+
+class ScanKind(enum.Enum):
+    QUASI_STATIC = "quasi_static"
+    STATIC = "static"
+
+
+@dataclass(frozen=True)
+class ScanWindow:
+    """A time window of the trajectory that becomes one quasi-static scan.
+
+    ``T_obj_scan`` is the trajectory pose nearest the middle of the window (the virtual scanner
+    centre), ``t_s`` its time. Points with ``t_start_s <= t < t_end_s`` belong to the window
+    (the last window also takes ``t == t_end_s``).
+    """
+
+    scan_id: int
+    t_start_s: float
+    t_end_s: float
+    t_s: float
+    T_obj_scan: Pose = field(compare=False)
+
+    @property
+    def name(self) -> str:
+        return f"qs_{self.scan_id:05d}"
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """A scan with its points in its own frame and its pose ``T_obj_scan``.
+
+    Quasi-static scans carry times (``t_s`` is the centre time, the window bounds in
+    ``t_start_s``/``t_end_s``); static scans have ``nan`` times and may lack ``stamps_s``.
+    """
+
+    scan_id: int
+    name: str
+    kind: ScanKind
+    T_obj_scan: Pose
+    points_xyz: FloatArray
+    stamps_s: FloatArray | None = None
+    intensity: NDArray[np.float32] | None = None
+    t_s: float = float("nan")
+    t_start_s: float = float("nan")
+    t_end_s: float = float("nan")
+
+    def __len__(self) -> int:
+        return len(self.points_xyz)
+
+    def points_in_object_frame(self) -> FloatArray:
+        """The points mapped into the object frame with ``T_obj_scan``."""
+        return self.T_obj_scan.apply(self.points_xyz)
