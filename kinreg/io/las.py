@@ -7,6 +7,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import laspy
+import lazrs
 import numpy as np
 
 from kinreg.errors import CloudError
@@ -14,6 +15,9 @@ from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo
 from kinreg.types import CloudChunk
 
 log = logging.getLogger(__name__)
+
+# What laspy and its lazrs backend raise for unreadable, truncated or corrupted files.
+_DECODE_ERRORS = (laspy.LaspyException, lazrs.LazrsError, ValueError, OSError, EOFError, RuntimeError)
 
 # Only the fields kinreg uses are decompressed: LAS 1.4 layered LAZ (point formats 6-10) skips
 # the others entirely, which speeds up decoding; older formats ignore the selection.
@@ -40,7 +44,7 @@ class LasCloudReader:
         self.path = Path(path)
         try:
             self._reader = laspy.open(self.path, laz_backend=_laz_backend(), decompression_selection=_SELECTION)
-        except (laspy.LaspyException, ValueError, OSError, EOFError) as e:
+        except _DECODE_ERRORS as e:
             raise CloudError(f"cannot open as LAS/LAZ: {_describe(e)}", self.path) from None
         header = self._reader.header
         dims = tuple(header.point_format.dimension_names)
@@ -72,16 +76,19 @@ class LasCloudReader:
     def iter_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[CloudChunk]:
         """Yield the points in file order, ``chunk_points`` at a time (the last chunk may be short)."""
         # Reading again from the start: laspy's reader only goes forwards.
-        self._reader.seek(0)
         first = 0
         n_total = self.info.n_points
-        iterator = self._reader.chunk_iterator(chunk_points)
+        try:
+            self._reader.seek(0)
+            iterator = self._reader.chunk_iterator(chunk_points)
+        except _DECODE_ERRORS as e:
+            raise CloudError(f"cannot decode the points (truncated or corrupted?): {_describe(e)}", self.path) from None
         while first < n_total:
             try:
                 points = next(iterator)
             except StopIteration:
                 break
-            except (laspy.LaspyException, ValueError, OSError, EOFError, RuntimeError) as e:
+            except _DECODE_ERRORS as e:
                 raise CloudError(
                     f"decoding failed after {first:,} of {n_total:,} points (truncated or corrupted?): {_describe(e)}",
                     self.path,
