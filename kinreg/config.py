@@ -53,9 +53,23 @@ class SlicingConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class PlanesConfig:
+    voxel_m: float = 0.05  # RANSAC runs on a voxel-downsampled copy (open3d is slow on full clouds)
+    distance_m: float = 0.03  # RANSAC inlier threshold; about 3 x the range noise
+    refit_distance_m: float = 0.03  # full-resolution inlier band around the RANSAC plane
+    max_planes: int = 30  # per scan
+    ransac_iterations: int = 1000
+    min_points: int = 500  # full-resolution inliers per patch
+    min_area_m2: float = 1.0  # patches smaller than this are dropped
+    patch_cell_m: float = 0.25  # grid cell for splitting disconnected patches of one plane
+    seed: int = 0  # RANSAC seed: the same seed gives the same planes
+
+
+@dataclasses.dataclass(frozen=True)
 class KinregConfig:
     input: InputConfig = dataclasses.field(default_factory=InputConfig)
     slicing: SlicingConfig = dataclasses.field(default_factory=SlicingConfig)
+    planes: PlanesConfig = dataclasses.field(default_factory=PlanesConfig)
 
 
 C = TypeVar("C")

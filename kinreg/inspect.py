@@ -48,7 +48,7 @@ def describe_cloud(path: str | Path, full: bool = False, progress: Progress | No
         if info.bounds_min is not None and info.bounds_max is not None:
             rows += [("extent min [m]", _xyz(info.bounds_min)), ("extent max [m]", _xyz(info.bounds_max))]
         if info.time_range_s is not None:
-            rows.append(("time range [s]", f"{info.time_range_s[0]:.6f} .. {info.time_range_s[1]:.6f}"))
+            rows.append(("acquisition [s]", f"{info.time_range_s[0]:.6f} .. {info.time_range_s[1]:.6f}"))
         rows += [(k, v) for k, v in info.details.items() if v]
         if full and info.has_time:
             t_min, t_max, sorted_ok, last = np.inf, -np.inf, True, -np.inf

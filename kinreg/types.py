@@ -143,3 +143,40 @@ class Scan:
     def points_in_object_frame(self) -> FloatArray:
         """The points mapped into the object frame with ``T_obj_scan``."""
         return self.T_obj_scan.apply(self.points_xyz)
+
+
+@dataclass(frozen=True, eq=False)
+class Plane:
+    """A planar patch detected in one scan, in that scan's frame: ``normal . x = d_m``.
+
+    ``normal`` is unit and points towards the scanner that saw it (the scan origin), so
+    ``d_m < 0`` for a plane not through the origin. The normal has two degrees of freedom: its
+    uncertainty is expressed as small rotations along the two tangent directions ``basis_uv``
+    (rows, unit, orthogonal to the normal and each other), and ``cov_uvd`` is the 3x3 covariance
+    of (rotation towards u [rad], rotation towards v [rad], d [m]), i.e. a perturbed plane is
+    ``n' = normalize(n + a u + b v)``, ``d' = d + e``.
+
+    ``centroid_xyz`` is the mean of the inliers, ``hull_xyz`` (K, 3) the convex hull of the
+    inliers in the plane (scan frame), ``area_m2`` its area, ``rms_m`` the RMS of the
+    orthogonal residuals of the ``n_points`` full-resolution inliers.
+    """
+
+    scan_id: int
+    plane_id: int
+    normal: FloatArray
+    d_m: float
+    centroid_xyz: FloatArray
+    basis_uv: FloatArray
+    cov_uvd: FloatArray
+    hull_xyz: FloatArray
+    area_m2: float
+    n_points: int
+    rms_m: float
+
+    def cov_nd(self) -> FloatArray:
+        """The (rank-3) 4x4 covariance of (nx, ny, nz, d)."""
+        J = np.zeros((4, 3))
+        J[:3, 0] = self.basis_uv[0]
+        J[:3, 1] = self.basis_uv[1]
+        J[3, 2] = 1.0
+        return J @ self.cov_uvd @ J.T

@@ -32,12 +32,18 @@ def test_real_las_not_time_sorted(realdata):
 
 
 def test_chunking_does_not_change_points(tmp_path):
-    run = write_synthetic_run(tmp_path, n_points=20_000)
+    # More points than one LAZ chunk (50,000), so the parallel decoder handles several at once.
+    run = write_synthetic_run(tmp_path, n_points=160_000)
     with open_cloud(run.cloud_path) as reader:
         a = np.concatenate([c.xyz for c in reader.iter_chunks(3_001)])
-        b = np.concatenate([c.xyz for c in reader.iter_chunks(50_000)])
+        b = np.concatenate([c.xyz for c in reader.iter_chunks(2_000_000)])
+        t = np.concatenate([c.stamps_s for c in reader.iter_chunks(2_000_000)])
+        intensity = np.concatenate([c.intensity for c in reader.iter_chunks(2_000_000)])
     np.testing.assert_array_equal(a, b)
-    np.testing.assert_allclose(a, run.xyz, atol=1e-9)
+    np.testing.assert_allclose(b, run.xyz, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(t, run.stamps_s)
+    las = laspy.read(run.cloud_path)
+    np.testing.assert_array_equal(intensity, np.asarray(las.intensity, dtype=np.float32))
 
 
 def test_missing_gps_time_is_a_clear_error(tmp_path):

@@ -131,30 +131,28 @@ def _register_optional_commands() -> None:
 _register_optional_commands()
 
 
+def _fail(message: str, code: int) -> None:
+    # Plain print, not rich: the one error line must never be wrapped or styled.
+    print(f"kinreg: {message}", file=sys.stderr)
+    sys.exit(code)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point: one clean line and exit code 1 for every kinreg error, no traceback."""
     try:
         code = app(args=argv, standalone_mode=False)
     except KinregError as e:
-        console.print(f"kinreg: error: {e}", markup=False, highlight=False)
-        sys.exit(1)
+        _fail(f"error: {e}", 1)
     except click.exceptions.Abort:
-        console.print("kinreg: interrupted", markup=False)
-        sys.exit(130)
+        _fail("interrupted", 130)
     except click.ClickException as e:
         e.show()
         sys.exit(e.exit_code)
     except OSError as e:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-        console.print(f"kinreg: error: {where}{e.strerror or e}", markup=False, highlight=False)
-        sys.exit(1)
+        _fail(f"error: {where}{e.strerror or e}", 1)
     except Exception as e:  # an internal error: say so in one line unless debugging
         if os.environ.get("KINREG_DEBUG"):
             raise
-        console.print(
-            f"kinreg: internal error: {type(e).__name__}: {e} (set KINREG_DEBUG=1 for the traceback)",
-            markup=False,
-            highlight=False,
-        )
-        sys.exit(2)
+        _fail(f"internal error: {type(e).__name__}: {e} (set KINREG_DEBUG=1 for the traceback)", 2)
     sys.exit(code if isinstance(code, int) else 0)

@@ -22,7 +22,8 @@ _DECODE_ERRORS = (laspy.LaspyException, lazrs.LazrsError, ValueError, OSError, E
 # Only the fields kinreg uses are decompressed: LAS 1.4 layered LAZ (point formats 6-10) skips
 # the others entirely, which speeds up decoding; older formats ignore the selection.
 _SELECTION = (
-    laspy.DecompressionSelection.base()
+    laspy.DecompressionSelection.XY_RETURNS_CHANNEL
+    | laspy.DecompressionSelection.Z
     | laspy.DecompressionSelection.GPS_TIME
     | laspy.DecompressionSelection.INTENSITY
 )

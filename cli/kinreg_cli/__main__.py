@@ -1,0 +1,3 @@
+from kinreg_cli.main import main
+
+main()
