@@ -54,15 +54,56 @@ class SlicingConfig:
 
 @dataclasses.dataclass(frozen=True)
 class PlanesConfig:
-    voxel_m: float = 0.05  # RANSAC runs on a voxel-downsampled copy (open3d is slow on full clouds)
+    voxel_m: float = 0.05  # RANSAC runs on a voxel-downsampled copy; the refit uses all points
     distance_m: float = 0.03  # RANSAC inlier threshold; about 3 x the range noise
-    refit_distance_m: float = 0.03  # full-resolution inlier band around the RANSAC plane
-    max_planes: int = 30  # per scan
-    ransac_iterations: int = 1000
+    refit_distance_m: float = 0.03  # full-resolution inlier band around the plane; about 3 x the noise
+    max_planes: int = 30  # patches per scan (the largest are kept); also bounds the RANSAC rounds
+    ransac_iterations: int = 256  # plane hypotheses (local planar cells) scored per RANSAC round
+    ransac_cell_m: float = 0.5  # cell size of the local plane hypotheses
+    ransac_sample_points: int = 2048  # downsampled points the hypotheses are first scored on
     min_points: int = 500  # full-resolution inliers per patch
-    min_area_m2: float = 1.0  # patches smaller than this are dropped
+    min_area_m2: float = 1.0  # patches whose convex hull is smaller than this are dropped
     patch_cell_m: float = 0.25  # grid cell for splitting disconnected patches of one plane
+    patch_min_cell_points: int = 2  # grid cells with fewer inliers do not connect (stray points)
+    # Floors added in quadrature to the least-squares sigmas: quasi-static scans have correlated
+    # errors (drift inside the window, incidence-angle range bias, wall unevenness) that the
+    # point-count-driven LS covariance (~0.03 mm for 1e5 points) does not see.
+    min_sigma_d_m: float = 0.0005
+    min_sigma_angle_rad: float = 0.0002
     seed: int = 0  # RANSAC seed: the same seed gives the same planes
+
+
+@dataclasses.dataclass(frozen=True)
+class DriftConfig:
+    """How fast the trajectory's relative error grows with the time between two poses.
+
+    sigma(dt) = sqrt(floor^2 + (rate * dt)^2), per axis. It weights the trajectory's own links
+    between stations and the prior of every pairwise adjustment.
+    """
+
+    sigma_pos_floor_m: float = 0.002
+    sigma_pos_m_per_s: float = 0.001
+    sigma_rot_floor_deg: float = 0.02
+    sigma_rot_deg_per_s: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class MatchingConfig:
+    neighbour_depth: int = 4  # each scan is linked to this many successors in the sequence
+    radius_m: float = 10.0  # and to any scan whose centre is this close (loop closures)
+    max_angle_deg: float = 2.0  # normal angle between candidate planes after the approximate transform
+    max_offset_m: float = 0.10  # offset between candidate planes after the approximate transform
+    min_overlap: float = 0.1  # overlapping share of the smaller extent
+    coplanar_angle_deg: float = 1.0  # patches closer than this are one physical plane ...
+    coplanar_offset_m: float = 0.02  # ... if also this close
+    min_matches: int = 3  # a pair with fewer plane matches is not linked
+
+
+@dataclasses.dataclass(frozen=True)
+class PairwiseConfig:
+    alpha: float = 0.001  # significance of the global test and of data snooping
+    max_iterations: int = 10
+    max_rejected_share: float = 0.3  # stop snooping (and fail the link) beyond this share of matches
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +111,9 @@ class KinregConfig:
     input: InputConfig = dataclasses.field(default_factory=InputConfig)
     slicing: SlicingConfig = dataclasses.field(default_factory=SlicingConfig)
     planes: PlanesConfig = dataclasses.field(default_factory=PlanesConfig)
+    drift: DriftConfig = dataclasses.field(default_factory=DriftConfig)
+    matching: MatchingConfig = dataclasses.field(default_factory=MatchingConfig)
+    pairwise: PairwiseConfig = dataclasses.field(default_factory=PairwiseConfig)
 
 
 C = TypeVar("C")
