@@ -349,3 +349,18 @@ def interpolate_poses(stamps_s: ArrayLike, poses: Pose, query_s: ArrayLike) -> P
     t = poses.t_xyz[i] + u[..., None] * (poses.t_xyz[i + 1] - poses.t_xyz[i])
     quat = quat_slerp(poses.quat_wxyz[i], poses.quat_wxyz[i + 1], u)
     return Pose(quat, t)
+
+
+def tangent_basis(normal: ArrayLike) -> FloatArray:
+    """Two unit vectors ``(2, 3)`` orthogonal to a unit ``normal`` and to each other
+    (right-handed: ``u x v = n``), chosen deterministically.
+
+    >>> tangent_basis([0.0, 0.0, 1.0])
+    array([[ 0.,  1.,  0.],
+           [-1.,  0.,  0.]])
+    """
+    n = _as_float(normal)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(n, u)])

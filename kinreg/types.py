@@ -180,3 +180,62 @@ class Plane:
         J[:3, 1] = self.basis_uv[1]
         J[3, 2] = 1.0
         return J @ self.cov_uvd @ J.T
+
+
+@dataclass(frozen=True)
+class PlaneMatch:
+    """Plane ``plane_i`` of scan i and plane ``plane_j`` of scan j are the same physical plane.
+
+    ``angle_deg`` and ``offset_m`` are the differences after mapping plane j into scan i with the
+    approximate pairwise transform; ``overlap`` the share of the smaller extent that overlaps.
+    """
+
+    plane_i: int
+    plane_j: int
+    angle_deg: float
+    offset_m: float
+    overlap: float
+
+
+class LinkStatus(enum.Enum):
+    OK = "ok"
+    PRIOR_ONLY = "prior_only"  # no usable plane pair: the link carries no plane information
+    REJECTED = "rejected"  # too many wrong matches: the global test failed when snooping hit its cap
+
+
+@dataclass(frozen=True, eq=False)
+class Link:
+    """The pairwise adjustment of scans i and j (METHOD.md section 2, step 6).
+
+    ``T_i_j`` maps scan-j coordinates into scan i (planes and trajectory prior combined);
+    ``cov_xi`` is the 6x6 covariance of the right-perturbation twist ``xi = (rho, phi)`` with
+    ``T = T_i_j.compose(Pose.exp(xi))``. The plane-only information, for a block adjustment that
+    adds the trajectory once by itself: ``info_planes`` (6x6, rank ``rank``, possibly deficient)
+    about the relative pose ``T_i_j_planes`` in the same twist convention.
+
+    ``axis_sigma_planes`` are the plane-only standard deviations (tx, ty, tz [m], rx, ry, rz [rad])
+    in scan i's axes, ``inf`` where the planes do not determine that axis; ``n_directions`` the
+    number of distinct plane normal directions (3 fixes the translation). ``sigma0`` is the
+    a-posteriori standard deviation of unit weight with ``redundancy`` degrees of freedom;
+    ``global_test_passed`` its chi-square test. ``rejected`` lists matches removed by data
+    snooping; ``max_normalised_residual`` is the largest remaining one.
+    """
+
+    scan_i: int
+    scan_j: int
+    status: LinkStatus
+    T_i_j: Pose
+    cov_xi: FloatArray
+    T_i_j_prior: Pose
+    T_i_j_planes: Pose
+    info_planes: FloatArray
+    rank: int
+    axis_sigma_planes: FloatArray
+    n_directions: int
+    sigma0: float
+    redundancy: int
+    global_test_passed: bool
+    matches: tuple[PlaneMatch, ...]
+    rejected: tuple[PlaneMatch, ...]
+    max_normalised_residual: float
+    dt_s: float

@@ -1,0 +1,156 @@
+"""Which scans to link, and which of their planes are the same physical plane (METHOD.md step 6).
+
+Candidate pairs are sequence neighbours plus scans whose centres are close (loop closures).
+Planes of scan j are mapped into scan i with the approximate pairwise transform from the
+trajectory and matched on normal angle, offset and overlapping extent. Ambiguities are resolved
+conservatively: where a plane has candidates on two different physical planes (parallel planes
+close together) and neither is clearly better, it is not matched at all; several patches of one
+physical plane (a wall seen in pieces) may all match. Data snooping in the pairwise adjustment
+catches what slips through.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from kinreg.config import MatchingConfig
+from kinreg.geometry import FloatArray, Pose
+from kinreg.types import Plane, PlaneMatch
+
+# A candidate on another physical plane must be this much worse (in offset) than the best one
+# before the best is trusted; otherwise the plane is left unmatched.
+_AMBIGUITY_RATIO = 3.0
+
+
+def candidate_pairs(positions_xyz: FloatArray, config: MatchingConfig) -> list[tuple[int, int]]:
+    """Pairs (i, j), i < j, of stations to link: sequence neighbours up to ``neighbour_depth``
+    apart, plus any stations whose centres are within ``radius_m``. Sorted."""
+    n = len(positions_xyz)
+    pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + config.neighbour_depth + 1))}
+    if n > 1 and config.radius_m > 0:
+        pairs |= {(min(a, b), max(a, b)) for a, b in cKDTree(positions_xyz).query_pairs(config.radius_m)}
+    return sorted(pairs)
+
+
+def transform_planes(normals: FloatArray, d_m: FloatArray, T_i_j: Pose) -> tuple[FloatArray, FloatArray]:
+    """Planes (normals (k, 3), offsets (k,)) of frame j expressed in frame i.
+
+    From ``n_j . x_j = d_j`` and ``x_i = R x_j + t``: ``(R n_j) . x_i = d_j + (R n_j) . t``.
+    """
+    n_i = normals @ T_i_j.rotation_matrix.T
+    return n_i, d_m + n_i @ T_i_j.t_xyz
+
+
+def _plane_frame(plane: Plane) -> tuple[FloatArray, FloatArray]:
+    return plane.basis_uv[0], plane.basis_uv[1]
+
+
+def _box_in_plane(points: FloatArray, origin: FloatArray, u: FloatArray, v: FloatArray) -> FloatArray:
+    uv = np.column_stack([(points - origin) @ u, (points - origin) @ v])
+    return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
+
+
+def _overlap_share(box_a: FloatArray, box_b: FloatArray) -> float:
+    """Overlapping area of two (umin, vmin, umax, vmax) boxes over the smaller box's area."""
+    du = min(box_a[2], box_b[2]) - max(box_a[0], box_b[0])
+    dv = min(box_a[3], box_b[3]) - max(box_a[1], box_b[1])
+    if du <= 0 or dv <= 0:
+        return 0.0
+    area = min((box_a[2] - box_a[0]) * (box_a[3] - box_a[1]), (box_b[2] - box_b[0]) * (box_b[3] - box_b[1]))
+    return float(du * dv / max(area, 1e-12))
+
+
+def _coplanar_groups(normals: FloatArray, d_m: FloatArray, config: MatchingConfig) -> np.ndarray:
+    """Label planes so that patches of one physical plane share a label."""
+    labels = -np.ones(len(d_m), dtype=int)
+    cos_max = np.cos(np.radians(config.coplanar_angle_deg))
+    for k in range(len(d_m)):
+        if labels[k] >= 0:
+            continue
+        same = (normals @ normals[k] >= cos_max) & (np.abs(d_m - d_m[k]) <= config.coplanar_offset_m)
+        labels[same & (labels < 0)] = k
+    return labels
+
+
+def match_planes(
+    planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...], T_i_j: Pose, config: MatchingConfig
+) -> tuple[PlaneMatch, ...]:
+    """Plane correspondences between two scans, given the approximate transform ``T_i_j``.
+
+    Normals must agree within ``max_angle_deg``, the planes lie within ``max_offset_m`` of each
+    other (measured at the other patch's centroid, both ways), and their extents overlap by at
+    least ``min_overlap``. Returns the matches sorted by (plane_i, plane_j).
+    """
+    if not planes_i or not planes_j:
+        return ()
+    n_a = np.array([p.normal for p in planes_i])
+    d_a = np.array([p.d_m for p in planes_i])
+    c_a = np.array([p.centroid_xyz for p in planes_i])
+    n_b, d_b = transform_planes(np.array([p.normal for p in planes_j]), np.array([p.d_m for p in planes_j]), T_i_j)
+    c_b = T_i_j.apply(np.array([p.centroid_xyz for p in planes_j]))
+
+    cos = np.clip(n_a @ n_b.T, -1.0, 1.0)
+    angle = np.degrees(np.arccos(cos))
+    # Offset at the other patch's centroid, both ways: robust to where the planes' origins lie.
+    off_ab = np.abs(c_b @ n_a.T - d_a[None, :]).T  # plane a evaluated at centroid of b
+    off_ba = np.abs(c_a @ n_b.T - d_b[None, :])  # plane b evaluated at centroid of a
+    offset = 0.5 * (off_ab + off_ba)
+    gate = (angle <= config.max_angle_deg) & (offset <= config.max_offset_m)
+
+    group_b = _coplanar_groups(n_b, d_b, config)
+    group_a = _coplanar_groups(n_a, d_a, config)
+    candidates: dict[tuple[int, int], tuple[float, float, float]] = {}
+    for a, b in zip(*np.nonzero(gate), strict=True):
+        u, v = _plane_frame(planes_i[a])
+        box_a = _box_in_plane(planes_i[a].hull_xyz, c_a[a], u, v)
+        box_b = _box_in_plane(T_i_j.apply(planes_j[b].hull_xyz), c_a[a], u, v)
+        share = _overlap_share(box_a, box_b)
+        if share >= config.min_overlap:
+            candidates[(int(a), int(b))] = (float(angle[a, b]), float(offset[a, b]), share)
+
+    def unambiguous(groups_of_other: np.ndarray, pairs: list[tuple[int, int]], other_index: int) -> bool:
+        best: dict[int, float] = {}
+        for pair in pairs:
+            g = int(groups_of_other[pair[other_index]])
+            best[g] = min(best.get(g, np.inf), candidates[pair][1])
+        if len(best) < 2:
+            return True
+        first, second = sorted(best.values())[:2]
+        return second > _AMBIGUITY_RATIO * first + config.coplanar_offset_m
+
+    def best_group(groups_of_other: np.ndarray, pairs: list[tuple[int, int]], other_index: int) -> int:
+        return int(groups_of_other[min(pairs, key=lambda p: candidates[p][1])[other_index]])
+
+    keep = set(candidates)
+    for a in range(len(planes_i)):
+        pairs = [p for p in candidates if p[0] == a]
+        if not pairs:
+            continue
+        if not unambiguous(group_b, pairs, 1):
+            keep -= set(pairs)
+            continue
+        g = best_group(group_b, pairs, 1)
+        keep -= {p for p in pairs if group_b[p[1]] != g}
+    for b in range(len(planes_j)):
+        pairs = [p for p in keep if p[1] == b]
+        if not pairs:
+            continue
+        if not unambiguous(group_a, pairs, 0):
+            keep -= set(pairs)
+            continue
+        g = best_group(group_a, pairs, 0)
+        keep -= {p for p in pairs if group_a[p[0]] != g}
+    return tuple(
+        PlaneMatch(planes_i[a].plane_id, planes_j[b].plane_id, *candidates[(a, b)]) for a, b in sorted(keep)
+    )
+
+
+def count_directions(normals: FloatArray, min_angle_deg: float = 20.0) -> int:
+    """Number of distinct normal directions (up to sign) among unit normals (k, 3)."""
+    reps: list[FloatArray] = []
+    cos_min = np.cos(np.radians(min_angle_deg))
+    for n in normals:
+        if all(abs(float(n @ r)) < cos_min for r in reps):
+            reps.append(n)
+    return len(reps)

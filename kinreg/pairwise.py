@@ -1,0 +1,216 @@
+"""Pairwise adjustment of two scans through identical planes (METHOD.md section 2, step 6).
+
+Gauss-Helmert model. Unknown: the pairwise transform ``T_i_j = T_prior . exp(xi)`` (right
+perturbation, ``xi = (rho, phi)``). For every matched plane pair (a in scan i, b in scan j) three
+conditions say that plane b, mapped into scan i, is plane a::
+
+    c1 = u_a . (R n_b - n_a)    (normal difference along a's first tangent)
+    c2 = v_a . (R n_b - n_a)    (... along its second tangent)
+    c3 = d_b + (R n_b) . t - d_a
+
+The observations are the plane parameters with their 3x3 covariances (two normal tilts and the
+offset, :class:`~kinreg.types.Plane`). The trajectory's relative pose enters as a direct
+observation of the unknowns (``xi = 0``) with standard deviations from the drift model, so pairs
+whose planes fix only one or two directions still solve. Data snooping removes the worst plane
+pair while its test statistic exceeds the chi-square quantile, then the global test judges the
+rest.
+
+Besides the combined result, each link keeps its plane-only information (normal matrix and the
+relative pose it points to), so that a block adjustment can add the trajectory once by itself
+instead of once per link.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy import stats
+
+from kinreg.config import DriftConfig, PairwiseConfig
+from kinreg.geometry import FloatArray, Pose, skew
+from kinreg.matching import count_directions
+from kinreg.types import Link, LinkStatus, Plane, PlaneMatch
+
+log = logging.getLogger(__name__)
+
+# Eigenvalues of the plane-only normal matrix below this share of the largest count as zero.
+_RANK_TOLERANCE = 1e-9
+
+
+def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
+    """Prior standard deviations (tx, ty, tz [m], rx, ry, rz [rad]) of the trajectory's relative
+    pose between two times ``dt_s`` apart: ``sqrt(floor^2 + (rate * dt)^2)`` per axis."""
+    pos = np.hypot(config.sigma_pos_floor_m, config.sigma_pos_m_per_s * dt_s)
+    rot = np.radians(np.hypot(config.sigma_rot_floor_deg, config.sigma_rot_deg_per_s * dt_s))
+    return np.array([pos, pos, pos, rot, rot, rot])
+
+
+class _Design:
+    """The observations and the linearised model of one pair for a set of matches."""
+
+    def __init__(self, planes_i: dict[int, Plane], planes_j: dict[int, Plane], matches: list[PlaneMatch]):
+        self.matches = matches
+        used_i = sorted({m.plane_i for m in matches})
+        used_j = sorted({m.plane_j for m in matches})
+        # Observation blocks: 3 per used plane, first those of scan i, then those of scan j.
+        self.block_i = {pid: 3 * k for k, pid in enumerate(used_i)}
+        self.block_j = {pid: 3 * (len(used_i) + k) for k, pid in enumerate(used_j)}
+        n_obs = 3 * (len(used_i) + len(used_j))
+        self.Q_ll = np.zeros((n_obs, n_obs))
+        for pid, k in self.block_i.items():
+            self.Q_ll[k:k + 3, k:k + 3] = planes_i[pid].cov_uvd
+        for pid, k in self.block_j.items():
+            self.Q_ll[k:k + 3, k:k + 3] = planes_j[pid].cov_uvd
+        self.a = [planes_i[m.plane_i] for m in matches]
+        self.b = [planes_j[m.plane_j] for m in matches]
+
+    def linearise(self, T: Pose) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T``."""
+        R, t = T.rotation_matrix, T.t_xyz
+        m_count = len(self.matches)
+        w = np.empty(3 * m_count)
+        A = np.zeros((3 * m_count, 6))
+        B = np.zeros((3 * m_count, self.Q_ll.shape[0]))
+        for k, (pa, pb, match) in enumerate(zip(self.a, self.b, self.matches, strict=True)):
+            ua, va = pa.basis_uv
+            ub, vb = pb.basis_uv
+            m = R @ pb.normal
+            rows = slice(3 * k, 3 * k + 3)
+            w[rows] = [ua @ (m - pa.normal), va @ (m - pa.normal), pb.d_m + m @ t - pa.d_m]
+            dm_dphi = -R @ skew(pb.normal)
+            A[3 * k, 3:] = ua @ dm_dphi
+            A[3 * k + 1, 3:] = va @ dm_dphi
+            A[3 * k + 2, :3] = pb.normal  # d(m . (t + R rho))/drho = m^T R = n_b^T
+            A[3 * k + 2, 3:] = t @ dm_dphi
+            ia, jb = self.block_i[match.plane_i], self.block_j[match.plane_j]
+            B[rows, ia:ia + 3] = -np.eye(3)
+            Rub, Rvb = R @ ub, R @ vb
+            B[rows, jb:jb + 3] = [[ua @ Rub, ua @ Rvb, 0.0], [va @ Rub, va @ Rvb, 0.0], [Rub @ t, Rvb @ t, 1.0]]
+        return w, A, B
+
+
+def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: int) -> dict:
+    T = T_prior
+    xi = np.zeros(6)
+    for _ in range(max_iterations):
+        w, A, B = design.linearise(T)
+        Q_ww = B @ design.Q_ll @ B.T
+        W = np.linalg.inv(Q_ww)
+        N_p = A.T @ W @ A
+        N = N_p + P_prior
+        step = np.linalg.solve(N, -(A.T @ W @ w + P_prior @ xi))
+        T = T.compose(Pose.exp(step))
+        xi = T_prior.inverse().compose(T).log()
+        if np.max(np.abs(step)) < 1e-11:
+            break
+    w, A, B = design.linearise(T)
+    Q_ww = B @ design.Q_ll @ B.T
+    W = np.linalg.inv(Q_ww)
+    N_p = A.T @ W @ A
+    Q_xx = np.linalg.inv(N_p + P_prior)
+    Q_ee = Q_ww - A @ Q_xx @ A.T
+    return {"T": T, "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx, "Q_ee": Q_ee,
+            "omega": float(w @ W @ w + xi @ P_prior @ xi)}
+
+
+def _match_statistics(sol: dict, n_matches: int) -> tuple[FloatArray, FloatArray]:
+    """Per match: the 3-dof test statistic e^T Q_ee^+ e, and the largest normalised residual."""
+    e, Q_ee = sol["w"], sol["Q_ee"]
+    test = np.empty(n_matches)
+    normalised = np.empty(n_matches)
+    for k in range(n_matches):
+        rows = slice(3 * k, 3 * k + 3)
+        block = Q_ee[rows, rows]
+        test[k] = float(e[rows] @ np.linalg.pinv(block, rcond=1e-10) @ e[rows])
+        normalised[k] = float(np.max(np.abs(e[rows]) / np.sqrt(np.maximum(np.diag(block), 1e-30))))
+    return test, normalised
+
+
+def _plane_only(sol: dict) -> tuple[Pose, FloatArray, int, FloatArray]:
+    """Plane-only estimate: the pose the planes alone point to (moved only along determined
+    directions), the information matrix, its rank, and per-axis standard deviations."""
+    N_p = 0.5 * (sol["N_p"] + sol["N_p"].T)
+    eigval, eigvec = np.linalg.eigh(N_p)
+    determined = eigval > _RANK_TOLERANCE * max(float(eigval[-1]), 1e-300)
+    rank = int(np.count_nonzero(determined))
+    g = sol["A"].T @ sol["W"] @ sol["w"]
+    inv = (eigvec[:, determined] / eigval[determined]) @ eigvec[:, determined].T
+    step = -inv @ g
+    T_planes = sol["T"].compose(Pose.exp(step))
+    null_share = np.sum(eigvec[:, ~determined] ** 2, axis=1)
+    axis_sigma = np.where(null_share > 1e-2, np.inf, np.sqrt(np.maximum(np.diag(inv), 0.0)))
+    return T_planes, N_p, rank, axis_sigma
+
+
+def adjust_pair(
+    scan_i: int,
+    scan_j: int,
+    planes_i: tuple[Plane, ...],
+    planes_j: tuple[Plane, ...],
+    T_prior: Pose,
+    dt_s: float,
+    matches: tuple[PlaneMatch, ...],
+    drift: DriftConfig,
+    config: PairwiseConfig,
+) -> Link:
+    """Adjust one pair. ``T_prior`` is the trajectory's ``T_i_j`` (maps scan j into scan i),
+    ``dt_s`` the time between the two scans (sets the prior's standard deviations).
+
+    Returns a :class:`Link`; with no usable match its status is ``PRIOR_ONLY`` and it carries
+    the prior alone (zero plane information).
+    """
+    sigma_prior = drift_sigmas(abs(dt_s), drift)
+    P_prior = np.diag(1.0 / sigma_prior**2)
+    by_id_i = {p.plane_id: p for p in planes_i}
+    by_id_j = {p.plane_id: p for p in planes_j}
+    active = list(matches)
+    rejected: list[PlaneMatch] = []
+    max_rejected = int(np.floor(config.max_rejected_share * len(matches)))
+    sol: dict | None = None
+    normalised = np.zeros(0)
+    while active:
+        sol = _solve(_Design(by_id_i, by_id_j, active), T_prior, P_prior, config.max_iterations)
+        test, normalised = _match_statistics(sol, len(active))
+        critical = stats.chi2.ppf(1.0 - config.alpha, 3)
+        worst = int(np.argmax(test))
+        if test[worst] <= critical or len(rejected) >= max_rejected:
+            break
+        log.debug("link %d-%d: rejected plane pair %s (test %.1f > %.1f)", scan_i, scan_j, active[worst],
+                  test[worst], critical)
+        rejected.append(active.pop(worst))
+        sol = None
+
+    if sol is None:
+        zeros = np.zeros((6, 6))
+        return Link(scan_i, scan_j, LinkStatus.PRIOR_ONLY, T_prior, np.diag(sigma_prior**2), T_prior, T_prior,
+                    zeros, 0, np.full(6, np.inf), 0, float("nan"), 0, True, (), tuple(rejected), 0.0, dt_s)
+
+    redundancy = 3 * len(active)
+    sigma0 = float(np.sqrt(sol["omega"] / redundancy))
+    passed = bool(sol["omega"] <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
+    T_planes, N_p, rank, axis_sigma = _plane_only(sol)
+    R_i = np.array([by_id_i[m.plane_i].normal for m in active])
+    # A failed global test alone is reported, not fatal (it happens at rate alpha by chance); a link
+    # is rejected when snooping hit its cap and the test still fails: too many wrong matches.
+    status = LinkStatus.REJECTED if (not passed and len(rejected) >= max(max_rejected, 1)) else LinkStatus.OK
+    return Link(
+        scan_i=scan_i,
+        scan_j=scan_j,
+        status=status,
+        T_i_j=sol["T"],
+        cov_xi=sol["Q_xx"],
+        T_i_j_prior=T_prior,
+        T_i_j_planes=T_planes,
+        info_planes=N_p,
+        rank=rank,
+        axis_sigma_planes=axis_sigma,
+        n_directions=count_directions(R_i),
+        sigma0=sigma0,
+        redundancy=redundancy,
+        global_test_passed=passed,
+        matches=tuple(active),
+        rejected=tuple(rejected),
+        max_normalised_residual=float(normalised.max()),
+        dt_s=dt_s,
+    )
