@@ -1,0 +1,398 @@
+"""Sparse normal equations: factorisation, solves and selected blocks of the inverse.
+
+The block adjustment has 6 unknowns per station (3 translation, 3 rotation) and thousands of
+stations, so ``N`` is large, sparse and block structured. This module factorises ``N`` once
+(:func:`factorize`), solves with the factor, and computes the per-station covariances -- the
+diagonal ``6 x 6`` blocks of ``N^-1`` and the blocks for directly linked station pairs -- without
+forming the dense inverse (:func:`selected_inverse`).
+
+Two backends:
+
+- ``"cholmod"``: CHOLMOD through scikit-sparse (the optional ``kinreg[cholmod]`` extra).
+- ``"scipy"``: SuperLU (``scipy.sparse.linalg.splu``) used as a symmetric ``L D L^T`` factorisation:
+  a symmetric fill-reducing ordering, no row pivoting (``diag_pivot_thresh=0``), so that
+  ``U = D L^T``. Slower, but needs nothing beyond scipy.
+
+The selected inverse uses the Takahashi recursion on the block pattern of the factor: with
+``P N P^T = L D L^T`` written in blocks as ``U Db U^T`` (``U`` unit block lower triangular), the
+inverse ``Z`` restricted to the pattern of ``L + L^T`` satisfies, column block ``J`` from last to
+first, with ``S`` the row blocks of column ``J`` below the diagonal::
+
+    Z[S, J] = -Z[S, S] U[S, J]
+    Z[J, J] = Db[J]^-1 - U[S, J]^T Z[S, J]
+
+and every ``Z[S, S]`` block lies inside the pattern again (the pattern of a Cholesky factor is
+chordal). The fill-reducing ordering is computed on the block graph, so each station's 6 unknowns
+stay together and the recursion runs over ``6 x 6`` blocks with one numpy step per block column.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from kinreg.errors import EstimationError
+
+log = logging.getLogger(__name__)
+
+try:
+    from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze, cholesky
+
+    HAVE_CHOLMOD = True
+except ImportError:  # SuiteSparse or the extra is missing: the scipy backend takes over
+    HAVE_CHOLMOD = False
+
+Backend = Literal["cholmod", "scipy"]
+
+FALLBACK_WARNING = "scikit-sparse (CHOLMOD) not available; using scipy's sparse LU, slower for large networks"
+
+# A pivot of the L D L^T factor at or below this fraction of the matching diagonal entry of N counts as
+# zero (it is the pivot of the Jacobi-scaled matrix). Without a datum the last pivots end at rounding
+# level -- negative, or 1e-15 .. 1e-13 with the block ordering, up to ~1e-9 with CHOLMOD's simplicial
+# scalar ordering on 20,000 stations -- while a fixed datum kept them above 1e-4 in the benchmark
+# networks. A numerical test cannot separate a singular datum from an extremely weak network; the
+# structural check (every station connected to the datum) belongs to the caller.
+PIVOT_RTOL = 1e-10
+
+# Right-hand sides per batch when blocks of the inverse are found by solving (a few MB per batch).
+SOLVE_BATCH = 384
+
+_fallback_warned = False  # the fallback warning is logged once per process, not once per iteration
+
+
+def _singular(detail: str) -> EstimationError:
+    return EstimationError(
+        f"normal matrix is singular or not positive definite: the datum is not fixed ({detail})")
+
+
+class SparseFactor:
+    """A factorisation of a symmetric positive definite ``N`` (n x n), from :func:`factorize`.
+
+    ``backend`` is ``"cholmod"`` or ``"scipy"``; ``block_size`` is the block size the ordering kept
+    together (or ``None``). Use :meth:`solve`; :func:`selected_inverse` reads the factor itself.
+    """
+
+    def __init__(self, backend: Backend, n: int, block_size: int | None, order: np.ndarray,
+                 solve_ordered: Callable[[np.ndarray], np.ndarray],
+                 lower: Callable[[], tuple[sp.csc_matrix, np.ndarray, np.ndarray]]) -> None:
+        self.backend = backend
+        self.n = n
+        self.block_size = block_size
+        self._order = order  # the factor is of N[order][:, order]
+        self._solve_ordered = solve_ordered
+        self._lower = lower
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``x`` with ``N x = b``; ``b`` of shape (n,) or (n, k), ``x`` of the same shape."""
+        b = np.asarray(b, dtype=float)
+        if b.shape[0] != self.n or b.ndim not in (1, 2):
+            raise ValueError(f"right-hand side of shape {b.shape} for a {self.n} x {self.n} matrix")
+        b_ordered = b[self._order]
+        x = np.empty_like(b)
+        x[self._order] = np.asarray(self._solve_ordered(b_ordered)).reshape(b_ordered.shape)
+        return x
+
+    def lower(self) -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
+        """``(L, d, perm)`` with ``N[perm][:, perm] = L diag(d) L^T``, ``L`` lower triangular (csc)."""
+        return self._lower()
+
+
+def factorize(N: sp.spmatrix | sp.sparray, *, backend: Backend | None = None,
+              block_size: int | None = 6) -> SparseFactor:
+    """Factorise the symmetric positive definite normal matrix ``N`` (n x n, sparse, csc preferred).
+
+    ``backend``: ``"cholmod"``, ``"scipy"`` or ``None`` (CHOLMOD when scikit-sparse imports, else
+    scipy, with one logged warning per process). ``block_size``: the fill-reducing ordering is
+    computed on the graph of ``block_size x block_size`` blocks (kinreg: 6 unknowns per station) so
+    the factor can serve :func:`selected_inverse`; ``None`` orders single unknowns.
+
+    Raises :class:`EstimationError` if ``N`` is singular or not positive definite (e.g. no station
+    fixed), ``ValueError`` if ``N`` is not square or ``n`` is not a multiple of ``block_size``, and
+    ``ImportError`` if ``backend="cholmod"`` is asked for where scikit-sparse is missing.
+    """
+    N = sp.csc_matrix(N, dtype=float)
+    n = N.shape[0]
+    if N.shape != (n, n):
+        raise ValueError(f"normal matrix must be square, got {N.shape}")
+    if block_size is not None and (block_size < 1 or n % block_size):
+        raise ValueError(f"matrix size {n} is not a multiple of block_size={block_size}")
+    if backend is None:
+        backend = "cholmod" if HAVE_CHOLMOD else "scipy"
+    if backend == "cholmod" and not HAVE_CHOLMOD:
+        raise ImportError("backend='cholmod' needs scikit-sparse (pip install 'kinreg[cholmod]')")
+    if backend not in ("cholmod", "scipy"):
+        raise ValueError(f"unknown backend {backend!r}")
+    if backend == "scipy":
+        _warn_fallback()
+    diag = N.diagonal()
+    if n and not np.all(diag > 0):
+        k = int(np.argmin(diag))
+        raise _singular(f"diagonal entry {k} is {diag[k]:.3g}")
+
+    if block_size is None:
+        order = np.arange(n)
+        Nq = N
+    else:
+        block_order = (_block_order_cholmod if backend == "cholmod" else _block_order_scipy)(N, block_size)
+        order = (block_size * block_order[:, None] + np.arange(block_size)).ravel()
+        Nq = N[order][:, order]
+    if backend == "cholmod":
+        factor = _factorize_cholmod(Nq, natural=block_size is not None)
+    else:
+        factor = _factorize_scipy(Nq, natural=block_size is not None)
+    solve_ordered, lower_ordered, pivots, perm = factor
+    _check_pivots(pivots, Nq.diagonal()[perm])
+
+    def lower() -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
+        L, d = lower_ordered()
+        return L, d, order[perm]
+
+    return SparseFactor(backend, n, block_size, order, solve_ordered, lower)
+
+
+def _warn_fallback() -> None:
+    global _fallback_warned
+    if not _fallback_warned:
+        _fallback_warned = True
+        log.warning(FALLBACK_WARNING)
+
+
+def _check_pivots(pivots: np.ndarray, diag: np.ndarray) -> None:
+    bad = ~(pivots > PIVOT_RTOL * diag)  # also catches NaN
+    if np.any(bad):
+        k = int(np.flatnonzero(bad)[0])
+        raise _singular(f"{int(bad.sum())} pivot(s) at or below {PIVOT_RTOL:g} of the diagonal, "
+                        f"first {pivots[k]:.3g} against {diag[k]:.3g}")
+
+
+def _block_pattern(N: sp.csc_matrix, bs: int) -> sp.csc_matrix:
+    """The graph of nonzero blocks, (n/bs x n/bs), symmetric, unit entries (no diagonal)."""
+    coo = N.tocoo()
+    nb = N.shape[0] // bs
+    r, c = coo.row // bs, coo.col // bs
+    off = r != c
+    B = sp.coo_matrix((np.ones(np.count_nonzero(off)), (r[off], c[off])), shape=(nb, nb)).tocsc()
+    B.data[:] = 1.0
+    return ((B + B.T) > 0).astype(float).tocsc()
+
+
+def _block_order_cholmod(N: sp.csc_matrix, bs: int) -> np.ndarray:
+    # CHOLMOD's own choice (AMD, METIS when AMD fills badly) on the block graph: six times smaller
+    # than the scalar graph, and it keeps each station's unknowns together.
+    B = _block_pattern(N, bs)
+    B = (B + sp.eye(B.shape[0], format="csc")).tocsc()
+    return np.asarray(analyze(B).P(), dtype=np.int64)
+
+
+def _block_order_scipy(N: sp.csc_matrix, bs: int) -> np.ndarray:
+    # SuperLU's minimum degree on A^T + A, run on a diagonally dominant matrix with the block graph's
+    # pattern; scipy exposes no other symmetric fill-reducing ordering.
+    B = _block_pattern(N, bs)
+    nb = B.shape[0]
+    M = (sp.diags(np.asarray(B.sum(axis=1)).ravel() + 1.0) - B).tocsc()
+    lu = splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    return np.argsort(lu.perm_c) if nb else np.arange(0)
+
+
+def _factorize_cholmod(Nq: sp.csc_matrix, natural: bool):
+    try:
+        f = cholesky(Nq, ordering_method="natural" if natural else "default")
+    except CholmodNotPositiveDefiniteError as error:  # the supernodal factorisation stops at once
+        raise _singular(str(error)) from error
+    perm = np.asarray(f.P(), dtype=np.int64)
+
+    def lower() -> tuple[sp.csc_matrix, np.ndarray]:
+        L = sp.csc_matrix(f.L())
+        return L, np.ones(L.shape[0])
+
+    def solve_ordered(b: np.ndarray) -> np.ndarray:
+        return f(b)
+
+    return solve_ordered, lower, np.asarray(f.D()), perm
+
+
+def _factorize_scipy(Nq: sp.csc_matrix, natural: bool):
+    # No row pivoting: for an SPD matrix SuperLU then computes P N P^T = L U with U = D L^T.
+    try:
+        lu = splu(Nq, permc_spec="NATURAL" if natural else "MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                  options={"SymmetricMode": True})
+    except RuntimeError as error:  # "Factor is exactly singular"
+        raise _singular(str(error)) from error
+    if not np.array_equal(lu.perm_r, lu.perm_c):  # SuperLU left the diagonal: a zero pivot
+        raise _singular("zero pivot")
+    perm = np.argsort(lu.perm_c)
+    pivots = lu.U.diagonal()
+
+    def lower() -> tuple[sp.csc_matrix, np.ndarray]:
+        return sp.csc_matrix(lu.L), pivots
+
+    return lu.solve, lower, pivots, perm
+
+
+def selected_inverse(N: sp.spmatrix | sp.sparray, block_size: int = 6, pairs: np.ndarray | None = None,
+                     factor: SparseFactor | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Diagonal blocks of ``N^-1`` and its blocks at the requested block pairs.
+
+    ``N``: symmetric positive definite (n x n, sparse), ``n = n_blocks * block_size``. ``pairs``:
+    integer array (k, 2) of block indices ``(i, j)`` in the original ordering, normally pairs whose
+    block ``N[i, j]`` is nonzero (linked stations). ``factor``: a :func:`factorize` result of the same
+    ``N`` to reuse; one factorised with another block size is factorised again.
+
+    Returns ``(diag_blocks, pair_blocks)`` of shapes (n_blocks, bs, bs) and (k, bs, bs):
+    ``diag_blocks[i] = N^-1[i, i]`` (symmetric), ``pair_blocks[m] = N^-1[i_m, j_m]``, both in the
+    original ordering. Pairs outside the pattern of the factor are still answered, by solving for
+    their columns (slower). Raises :class:`EstimationError` if ``N`` is singular (no datum) and
+    ``ValueError`` for a block index out of range.
+    """
+    N = sp.csc_matrix(N, dtype=float)
+    bs = int(block_size)
+    n = N.shape[0]
+    if n % bs:
+        raise ValueError(f"matrix size {n} is not a multiple of block_size={bs}")
+    nb = n // bs
+    pairs = np.zeros((0, 2), dtype=np.int64) if pairs is None else np.asarray(pairs, dtype=np.int64)
+    pairs = pairs.reshape(-1, 2)
+    if pairs.size and (pairs.min() < 0 or pairs.max() >= nb):
+        raise ValueError(f"block pair index out of range 0..{nb - 1}")
+    if factor is None or factor.n != n or factor.block_size is None or factor.block_size % bs:
+        if factor is not None:
+            log.debug("selected_inverse: refactorising with a block ordering (block_size=%d)", bs)
+        factor = factorize(N, backend=None if factor is None else factor.backend, block_size=bs)
+
+    L, d, perm = factor.lower()
+    by_block = perm.reshape(nb, bs)
+    try:
+        # The backends may reorder after the block ordering (etree postorder); blocks must survive it.
+        first = by_block[:, :1]
+        if not (np.array_equal(by_block, first + np.arange(bs)) and np.all(first % bs == 0)):
+            raise _PatternNotClosedError
+        ptr, rows, Z = _takahashi(L, d, bs)
+    except _PatternNotClosedError:  # not expected with factorize's block ordering, kept as a safety net
+        log.debug("selected_inverse: factor not block aligned or pattern not closed, solving instead")
+        all_pairs = np.concatenate([np.repeat(np.arange(nb), 2).reshape(-1, 2), pairs])
+        blocks = _blocks_by_solving(factor, bs, all_pairs)
+        return 0.5 * (blocks[:nb] + blocks[:nb].swapaxes(1, 2)), blocks[nb:]
+    block_perm = by_block[:, 0] // bs  # ordered block k is original block block_perm[k]
+    iblock = np.empty(nb, dtype=np.int64)
+    iblock[block_perm] = np.arange(nb)
+
+    diag_blocks = np.empty((nb, bs, bs))
+    diag_blocks[block_perm] = Z[ptr[:-1]]
+    diag_blocks = 0.5 * (diag_blocks + diag_blocks.swapaxes(1, 2))
+
+    pair_blocks = np.empty((len(pairs), bs, bs))
+    if len(pairs):
+        a, b = iblock[pairs[:, 0]], iblock[pairs[:, 1]]
+        hi, lo = np.maximum(a, b), np.minimum(a, b)
+        pos, found = _lookup(ptr, rows, lo, hi)
+        stored = Z[np.where(found, pos, 0)]
+        pair_blocks[:] = np.where((a >= b)[:, None, None], stored, stored.swapaxes(1, 2))
+        if not np.all(found):
+            pair_blocks[~found] = _blocks_by_solving(factor, bs, pairs[~found])
+    return diag_blocks, pair_blocks
+
+
+class _PatternNotClosedError(Exception):
+    """The factor does not have the block structure the recursion needs."""
+
+
+def _block_structure(L: sp.csc_matrix, bs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block csc form of a lower triangular ``L`` whose blocks are aligned: ``(ptr, rows, blocks)``.
+
+    Column block ``J`` owns entries ``ptr[J]:ptr[J + 1]``, row blocks ``rows`` ascending, the
+    diagonal block first; ``blocks`` (n_nonzero_blocks, bs, bs) holds the values (zeros filled in).
+    """
+    n = L.shape[0]
+    nb = n // bs
+    L = sp.csc_matrix(L)
+    L.sort_indices()
+    col = np.repeat(np.arange(n, dtype=np.int64), np.diff(L.indptr))
+    row = L.indices.astype(np.int64)
+    keys = (col // bs) * nb + row // bs  # sorted by column block, then row block: csc order
+    # Each scalar column is already sorted, so a stable sort (timsort: merges runs) beats np.unique.
+    order = np.argsort(keys, kind="stable")
+    sorted_keys = keys[order]
+    first = np.ones(len(keys), dtype=bool)
+    first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    block_keys = sorted_keys[first]
+    inverse = np.empty(len(keys), dtype=np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    blocks = np.zeros((len(block_keys), bs, bs))
+    blocks[inverse, row % bs, col % bs] = L.data
+    bcol = block_keys // nb
+    ptr = np.searchsorted(bcol, np.arange(nb + 1))
+    return ptr, block_keys % nb, blocks
+
+
+def _lookup(ptr: np.ndarray, rows: np.ndarray, col: np.ndarray,
+            row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions of blocks (row, col) in the block csc structure, and whether each exists."""
+    nb = len(ptr) - 1
+    keys = np.repeat(np.arange(nb, dtype=np.int64), np.diff(ptr)) * nb + rows
+    want = col * nb + row
+    pos = np.minimum(np.searchsorted(keys, want), len(keys) - 1)
+    return pos, keys[pos] == want
+
+
+def _takahashi(L: sp.csc_matrix, d: np.ndarray, bs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``Z = (L diag(d) L^T)^-1`` on the block pattern of ``L``: ``(ptr, rows, Z_blocks)`` as above."""
+    ptr, rows, blocks = _block_structure(L, bs)
+    nb = len(ptr) - 1
+    diag_pos = ptr[:-1]
+    # Block form U Db U^T: U[I, J] = L[I, J] L[J, J]^-1, Db[J]^-1 = L[J, J]^-T diag(1/d_J) L[J, J]^-1.
+    Ljj_inv = np.linalg.inv(blocks[diag_pos])
+    Dinv = Ljj_inv.swapaxes(1, 2) @ (Ljj_inv / d.reshape(nb, bs, 1))
+    col_of = np.repeat(np.arange(nb), np.diff(ptr))
+    U = blocks
+    U[:] = blocks @ Ljj_inv[col_of]  # diagonal entries become identity, unused
+    keys = col_of.astype(np.int64) * nb + rows
+
+    Z = np.empty_like(U)
+    Z[diag_pos[-1]] = Dinv[-1]
+    # Reused per size s: which (a, b) of S x S lie above the diagonal (read transposed).
+    upper_cache: dict[int, np.ndarray] = {}
+    for J in range(nb - 2, -1, -1):
+        lo, hi = ptr[J] + 1, ptr[J + 1]
+        s = hi - lo
+        if s == 0:
+            Z[lo - 1] = Dinv[J]
+            continue
+        S = rows[lo:hi]
+        # Z[S_a, S_b] is stored at (max, min); S is ascending, so that is (S[max(a,b)], S[min(a,b)]).
+        want = np.minimum.outer(S, S) * nb + np.maximum.outer(S, S)
+        pos = np.searchsorted(keys, want.ravel())
+        if pos[-1] >= len(keys) or not np.array_equal(keys[pos], want.ravel()):
+            raise _PatternNotClosedError
+        G = Z[pos].reshape(s, s, bs, bs)
+        upper = upper_cache.get(s)
+        if upper is None:
+            upper = upper_cache[s] = np.triu(np.ones((s, s), dtype=bool), 1)[:, :, None, None]
+        M = np.where(upper, G.swapaxes(2, 3), G).transpose(0, 2, 1, 3).reshape(s * bs, s * bs)
+        U_SJ = U[lo:hi].reshape(s * bs, bs)
+        Z_SJ = -(M @ U_SJ)
+        Z[lo:hi] = Z_SJ.reshape(s, bs, bs)
+        Z[lo - 1] = Dinv[J] - U_SJ.T @ Z_SJ
+    return ptr, rows, Z
+
+
+def _blocks_by_solving(factor: SparseFactor, bs: int, pairs: np.ndarray) -> np.ndarray:
+    """Blocks ``N^-1[i, j]`` for pairs (k, 2) by solving for the columns of the blocks ``j``."""
+    out = np.empty((len(pairs), bs, bs))
+    cols = np.unique(pairs[:, 1])
+    per_batch = max(1, SOLVE_BATCH // bs)
+    for start in range(0, len(cols), per_batch):
+        batch = cols[start:start + per_batch]
+        E = np.zeros((factor.n, len(batch) * bs))
+        E[(bs * batch[:, None] + np.arange(bs)).ravel(), np.arange(len(batch) * bs)] = 1.0
+        X = factor.solve(E)  # columns of N^-1 for the blocks in this batch
+        sel = np.flatnonzero(np.isin(pairs[:, 1], batch))
+        k = np.searchsorted(batch, pairs[sel, 1])
+        r = bs * pairs[sel, 0][:, None] + np.arange(bs)  # (m, bs) rows
+        c = bs * k[:, None] + np.arange(bs)  # (m, bs) columns within X
+        out[sel] = X[r[:, :, None], c[:, None, :]]
+    return out
