@@ -54,10 +54,10 @@ class SlicingConfig:
 
 @dataclasses.dataclass(frozen=True)
 class PlanesConfig:
-    voxel_m: float = 0.05  # RANSAC runs on a voxel-downsampled copy; the refit uses all points
+    voxel_m: float = 0.1  # RANSAC runs on a voxel-downsampled copy; the refit uses all points
     distance_m: float = 0.03  # RANSAC inlier threshold; about 3 x the range noise
     refit_distance_m: float = 0.03  # full-resolution inlier band around the plane; about 3 x the noise
-    max_planes: int = 30  # patches per scan (the largest are kept); also bounds the RANSAC rounds
+    max_planes: int = 30  # patches per scan (the largest are kept); RANSAC stops at this many planes
     ransac_iterations: int = 256  # plane hypotheses (local planar cells) scored per RANSAC round
     ransac_cell_m: float = 0.5  # cell size of the local plane hypotheses
     ransac_sample_points: int = 2048  # downsampled points the hypotheses are first scored on
@@ -78,13 +78,16 @@ class DriftConfig:
     """How fast the trajectory's relative error grows with the time between two poses.
 
     sigma(dt) = sqrt(floor^2 + (rate * dt)^2), per axis. It weights the trajectory's own links
-    between stations and the prior of every pairwise adjustment.
+    between stations and the prior of every pairwise adjustment, and it sets the bias of a
+    quasi-static scan (drift inside its window, see ``kinreg.network.window_bias_sigmas``).
+    Defaults describe a handheld SLAM unit of the GeoSLAM class (a few mm over a 6 s window,
+    1-3 cm over 100 m); set them from your scanner's specification.
     """
 
-    sigma_pos_floor_m: float = 0.002
-    sigma_pos_m_per_s: float = 0.001
-    sigma_rot_floor_deg: float = 0.02
-    sigma_rot_deg_per_s: float = 0.01
+    sigma_pos_floor_m: float = 0.001
+    sigma_pos_m_per_s: float = 0.0003
+    sigma_rot_floor_deg: float = 0.01
+    sigma_rot_deg_per_s: float = 0.003
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,6 +110,19 @@ class PairwiseConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class BlockConfig:
+    alpha: float = 0.001  # significance of the global test and of data snooping
+    max_iterations: int = 20  # Gauss-Newton iterations
+    convergence: float = 1e-9  # stop when no unknown changes by more (m or rad)
+    data_snooping: bool = True
+    max_rejections: int = 50
+    # Estimate one variance factor per observation kind, used only to inflate the a-priori model
+    # (errors shared by all links of a scan and smooth drift do not show in residuals).
+    variance_components: bool = True
+    max_variance_rounds: int = 10
+
+
+@dataclasses.dataclass(frozen=True)
 class KinregConfig:
     input: InputConfig = dataclasses.field(default_factory=InputConfig)
     slicing: SlicingConfig = dataclasses.field(default_factory=SlicingConfig)
@@ -114,6 +130,7 @@ class KinregConfig:
     drift: DriftConfig = dataclasses.field(default_factory=DriftConfig)
     matching: MatchingConfig = dataclasses.field(default_factory=MatchingConfig)
     pairwise: PairwiseConfig = dataclasses.field(default_factory=PairwiseConfig)
+    block: BlockConfig = dataclasses.field(default_factory=BlockConfig)
 
 
 C = TypeVar("C")

@@ -2,16 +2,46 @@
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from collections.abc import Iterator
+from dataclasses import dataclass, replace
 from pathlib import Path
 
-from kinreg.config import InputConfig, KinregConfig
+import numpy as np
+
+from kinreg.block import adjust_block
+from kinreg.config import InputConfig, KinregConfig, PlanesConfig, format_toml
+from kinreg.correction import DriftCorrection, write_corrected_las
+from kinreg.errors import ConfigError, OutputError
+from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.cloud import open_cloud
-from kinreg.io.trajectory import parse_column_mapping, read_trajectory
+from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
+from kinreg.matching import candidate_pairs
+from kinreg.network import (
+    DriftRates,
+    Station,
+    block_observations,
+    estimate_drift_rates,
+    link_stations,
+    plane_time_offsets,
+    with_window_bias,
+)
+from kinreg.planes import detect_planes
 from kinreg.progress import NullProgress, Progress
+from kinreg.report import (
+    build_report,
+    format_links_csv,
+    format_stations_csv,
+    links_table,
+    stations_table,
+    write_report_json,
+    write_text,
+)
+from kinreg.report_html import render_html
 from kinreg.slicing import QuasiStaticSequence, SlicingSummary, slice_quasi_static
-from kinreg.types import Scan, Trajectory
+from kinreg.types import Plane, Scan, Trajectory
 
 
 def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
@@ -51,3 +81,183 @@ def slice_to_e57(
         scans = _counted(sequence.iter_scans(), progress, "export E57", len(sequence))
         write_e57_sequence(out_path, scans, overwrite=overwrite)
     return sequence.summary
+
+
+@dataclass(frozen=True)
+class ProcessInputs:
+    """What ``kinreg process`` reads."""
+
+    trajectory: Path
+    cloud: Path
+    static: Path | None = None
+    reference: Path | None = None
+
+
+@dataclass(frozen=True)
+class ProcessSummary:
+    """The headline figures of a processed run (the full report is in ``report.json``)."""
+
+    out_dir: Path
+    n_stations: int
+    n_links: int
+    sigma0: float
+    global_test_passed: bool
+    position_sigma_rms_mm: float
+    position_sigma_max_mm: float
+    gaps_mean_mm: float
+    gaps_max_mm: float
+    n_rejected: int
+    timings_s: dict[str, float]
+
+
+OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "corrected.laz", "sequence.e57",
+                "report.json", "report.html", "config.toml")
+
+
+def prepare_output_folder(out_dir: Path, overwrite: bool) -> None:
+    """Create the output folder; refuse one that already holds kinreg outputs unless ``overwrite``."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError("exists and is not a folder", out_dir)
+    if out_dir.is_dir() and not overwrite and any((out_dir / name).exists() for name in OUTPUT_FILES):
+        raise OutputError("already holds kinreg results; use --overwrite to replace them", out_dir)
+    check_writable_target(out_dir / "stations.csv", overwrite=True)
+
+
+def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig,
+                      progress: Progress) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """Planes of every quasi-static scan, and the stations they belong to."""
+    stations: list[Station] = []
+    planes: list[tuple[Plane, ...]] = []
+    progress.start("planes", total=len(sequence), unit="scans")
+    for scan in sequence.iter_scans():
+        found = detect_planes(scan, config)
+        tau = float("nan")
+        if scan.stamps_s is not None:
+            tau = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
+        stations.append(Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
+                                scan.T_obj_scan, len(scan), tau))
+        planes.append(found)
+        progress.advance(1)
+    progress.finish()
+    return stations, planes
+
+
+def _adjusted_scans(sequence: QuasiStaticSequence, poses: Pose) -> Iterator[Scan]:
+    for scan in sequence.iter_scans():
+        yield replace(scan, T_obj_scan=poses[scan.scan_id])
+
+
+def _trajectory_plot(trajectory: Trajectory, corrected: Trajectory, max_points: int = 2000) -> dict[str, list[float]]:
+    step = max(1, len(trajectory) // max_points)
+    return {
+        "t": (trajectory.stamps_s[::step] - trajectory.t_start_s).tolist(),
+        "x_before": trajectory.poses.t_xyz[::step, 0].tolist(),
+        "y_before": trajectory.poses.t_xyz[::step, 1].tolist(),
+        "x_after": corrected.poses.t_xyz[::step, 0].tolist(),
+        "y_after": corrected.poses.t_xyz[::step, 1].tolist(),
+    }
+
+
+def process(
+    inputs: ProcessInputs,
+    out_dir: str | Path,
+    config: KinregConfig,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+) -> ProcessSummary:
+    """``kinreg process``: read, slice, detect planes, link, adjust, correct, report."""
+    from kinreg.io.e57 import write_e57_sequence
+
+    progress = progress or NullProgress()
+    out = Path(out_dir)
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(stage: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        timings[stage] = now - clock
+        clock = now
+
+    if inputs.static is not None or inputs.reference is not None:
+        raise ConfigError("static scans and reference planes are not supported yet (planned)")
+    prepare_output_folder(out, overwrite)
+    trajectory = read_input_trajectory(inputs.trajectory, config.input)
+    with open_cloud(inputs.cloud) as cloud:
+        n_points_input = cloud.info.n_points
+        sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
+                                      progress=progress)
+    lap("slice")
+    with sequence:
+        stations, planes = detect_all_planes(sequence, config.planes, progress)
+        lap("planes")
+        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress)
+        n_candidates = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), config.matching))
+        lap("link")
+        poses_initial = Pose.stack([s.T_obj_scan for s in stations])
+        fixed = np.zeros(len(stations), dtype=bool)
+        fixed[0] = True  # datum: the first station
+        prior_rates = DriftRates.from_config(config.drift)
+        result = adjust_block(poses_initial, block_observations(stations, links, prior_rates), fixed,
+                              config.block, progress)
+        # The first adjustment measures the drift; where it is faster than the prior, adjust again
+        # with the measured rates so that trajectory-only stretches get honest sigmas.
+        rates = estimate_drift_rates(stations, result, prior_rates)
+        if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
+                rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
+            result = adjust_block(poses_initial, block_observations(stations, links, rates), fixed,
+                                  config.block, progress)
+        result = with_window_bias(result, stations, rates)
+        lap("block")
+        station_times = np.array([s.t_s for s in stations])
+        correction = DriftCorrection.from_stations(station_times, poses_initial, result.poses, trajectory)
+        corrected_trajectory = correction.apply_to_trajectory(trajectory)
+        write_trajectory_geoslam(out / "trajectory_corrected.txt", corrected_trajectory, overwrite=True)
+        if inputs.cloud.suffix.lower() in (".las", ".laz"):
+            write_corrected_las(inputs.cloud, out / "corrected.laz", correction, config.input.chunk_points,
+                                overwrite=True, progress=progress)
+        else:
+            raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", inputs.cloud)
+        lap("corrected cloud")
+        scans = _counted(_adjusted_scans(sequence, result.poses), progress, "write E57", len(sequence))
+        write_e57_sequence(out / "sequence.e57", scans, overwrite=True)
+        lap("sequence E57")
+        slicing_summary = sequence.summary
+
+    shift, rot = correction.magnitude()
+    config_toml = format_toml(config)
+    report = build_report(
+        inputs={"trajectory": str(inputs.trajectory), "cloud": str(inputs.cloud), "n_points": n_points_input,
+                "n_trajectory_rows": len(trajectory), "duration_s": trajectory.duration_s,
+                "path_length_m": trajectory.path_length_m()},
+        config_toml=config_toml,
+        stations=stations, planes=planes, links=links, n_candidate_pairs=n_candidates, result=result,
+        slicing={"n_scans": slicing_summary.n_scans, "n_points_in_scans": slicing_summary.n_points_in_scans,
+                 "n_points_outside_trajectory": slicing_summary.n_points_outside_trajectory,
+                 "skipped_windows": [dataclasses.asdict(w) for w in slicing_summary.skipped]},
+        correction_mm=shift * 1000.0, correction_mdeg=np.degrees(rot) * 1000.0,
+        datum="first_station", alpha=config.block.alpha, timings_s=timings, drift_rates=rates,
+        trajectory_plot=_trajectory_plot(trajectory, corrected_trajectory),
+    )
+    rows = stations_table(stations, result, planes, links)
+    write_text(out / "stations.csv", format_stations_csv(rows))
+    write_text(out / "links.csv", format_links_csv(links_table(links, result)))
+    write_text(out / "config.toml", config_toml)
+    write_report_json(out / "report.json", report)
+    write_text(out / "report.html", render_html(report))
+    lap("reports")
+    report["timings_s"] = timings
+    write_report_json(out / "report.json", report)
+    return ProcessSummary(
+        out_dir=out,
+        n_stations=len(stations),
+        n_links=len(links),
+        sigma0=result.sigma0,
+        global_test_passed=result.global_test_passed,
+        position_sigma_rms_mm=report["stations"]["position_sigma_mm"]["rms"],
+        position_sigma_max_mm=report["stations"]["position_sigma_mm"]["max"],
+        gaps_mean_mm=report["before_after"]["gaps_mm"]["mean"],
+        gaps_max_mm=report["before_after"]["gaps_mm"]["max"],
+        n_rejected=len(report["adjustment"]["rejected_observations"]),
+        timings_s=timings,
+    )

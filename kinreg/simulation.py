@@ -727,6 +727,22 @@ def config_as_dict(config: SimulationConfig) -> dict[str, Any]:
     return conv(dataclasses.asdict(config))
 
 
+def config_from_dict(data: dict[str, Any]) -> SimulationConfig:
+    """The inverse of :func:`config_as_dict` (e.g. from ``run_meta.json``): rebuilds the run."""
+    sections = {"building": BuildingConfig, "sensor": SensorConfig, "walk": WalkConfig, "drift": DriftConfig,
+                "static": StaticConfig}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key in sections:
+            sub = dict(value)
+            if key == "building" and "layout" in sub:
+                sub["layout"] = BuildingLayout(sub["layout"])
+            kwargs[key] = sections[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()})
+        else:
+            kwargs[key] = tuple(value) if isinstance(value, list) else value
+    return SimulationConfig(**kwargs)
+
+
 def _rng(seed: int, stream: int) -> np.random.Generator:
     # One independent stream per purpose, so that changing e.g. the noise leaves the walk alone.
     return np.random.default_rng([seed, stream])

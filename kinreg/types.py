@@ -239,3 +239,70 @@ class Link:
     rejected: tuple[PlaneMatch, ...]
     max_normalised_residual: float
     dt_s: float
+
+
+class ObservationKind(enum.Enum):
+    PLANES = "planes"  # plane-only information of a pairwise link
+    TRAJECTORY = "trajectory"  # the trajectory's relative pose between consecutive stations
+    STATION = "station"  # a direct observation of one station's pose (static scans with sigmas)
+
+
+@dataclass(frozen=True, eq=False)
+class RelativeObservation:
+    """One observation of the block adjustment: the relative pose ``T_i_j`` of stations i and j
+    (or, for ``STATION``, the pose ``T_obj_i`` itself; ``j`` is then -1) with its 6x6 information
+    matrix in the right-perturbation twist convention (``T = Z.compose(Pose.exp(e))``), possibly
+    rank deficient."""
+
+    kind: ObservationKind
+    i: int
+    j: int
+    Z: Pose
+    info: FloatArray
+    rank: int
+
+
+@dataclass(frozen=True)
+class ObservationTest:
+    """How an observation fits after the block adjustment."""
+
+    index: int  # position in the observation list
+    kind: ObservationKind
+    i: int
+    j: int
+    statistic: float  # e^T Q_ee^-1 e over its determined directions, chi-square with `dof`
+    dof: int
+    redundancy: float  # its share of the total redundancy (0: uncontrolled, dof: fully controlled)
+    normalised: float  # sqrt(statistic / dof)
+    rejected: bool
+    vtpv: float = float("nan")  # its weighted squared residual e^T P e (for variance components)
+
+
+@dataclass(frozen=True, eq=False)
+class BlockResult:
+    """The adjusted network.
+
+    ``poses`` are the adjusted ``T_obj_scan`` of every station, ``cov_xi`` (n, 6, 6) the
+    covariance of each station's right-perturbation twist (rho in the station frame, then
+    phi), ``cov_position`` (n, 3, 3) that of its position in the object frame, both already
+    multiplied by ``variance_factor`` (1, or the estimated sigma0^2 where the global test
+    showed the a-priori model too optimistic). Fixed stations have zero covariance.
+    """
+
+    poses: Pose
+    poses_initial: Pose
+    fixed: NDArray[np.bool_]
+    cov_xi: FloatArray
+    cov_position: FloatArray
+    sigma0: float
+    redundancy: float
+    global_test_passed: bool
+    variance_factor: float
+    iterations: int
+    tests: tuple[ObservationTest, ...]
+    variance_components: dict[str, float]
+
+    @property
+    def sigma_position_m(self) -> FloatArray:
+        """Standard deviations (n, 3) of the station positions along the object axes."""
+        return np.sqrt(np.maximum(np.diagonal(self.cov_position, axis1=1, axis2=2), 0.0))

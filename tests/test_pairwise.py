@@ -43,7 +43,7 @@ def test_matching_finds_every_true_pair_and_nothing_else():
 def test_pairwise_transforms_are_within_their_reported_sigmas():
     rng = np.random.default_rng(2)
     chi2, inside_3sigma = [], []
-    for _ in range(300):
+    for _ in range(600):  # enough that the 99 % criterion is not decided by one or two links
         planes_i, planes_j, T_true, T_prior = make_pair(rng)
         matches = match_planes(planes_i, planes_j, T_prior, MATCH)
         link = adjust_pair(0, 1, planes_i, planes_j, T_prior, 6.0, matches, DRIFT, PAIR)
@@ -114,7 +114,7 @@ def test_two_wall_directions_still_solve_and_show_the_weak_direction():
     T_obj_i_rot = Pose(link.T_i_j.quat_wxyz, np.zeros(3))  # any rotation: use the covariance's eigenvector
     w, V = np.linalg.eigh(link.cov_xi[:3, :3])
     assert np.sqrt(w[-1]) == pytest.approx(prior[0], rel=0.05)
-    assert np.sqrt(w[0]) < 0.2 * prior[0]
+    assert np.sqrt(w[0]) < 0.5 * prior[0]
     assert np.isinf(link.axis_sigma_planes[:3]).any()
     e = error_twist(link.T_i_j, T_true)
     assert e @ np.linalg.solve(link.cov_xi, e) < stats.chi2.ppf(0.999, 6)

@@ -107,6 +107,37 @@ def slice_command(
     out.print(table)
 
 
+@app.command("process")
+def process_command(
+    trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],
+    cloud: Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")],
+    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+    static: Annotated[Path | None, typer.Option("--static", help="Registered static scans (E57 with poses).")] = None,
+    reference: Annotated[Path | None, typer.Option("--reference", help="Reference planes (TOML).")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
+    window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing results.")] = False,
+) -> None:
+    """Run everything: slice, planes, links, block adjustment, corrected outputs, reports."""
+    from kinreg.pipeline import ProcessInputs, process
+
+    cfg = _config(config, {"slicing.window_s": window_s})
+    summary = process(ProcessInputs(trajectory, cloud, static, reference), out_dir, cfg, overwrite=overwrite,
+                      progress=RichProgress(console))
+    table = Table(title=f"kinreg results in {out_dir}", show_header=False, title_justify="left")
+    table.add_column("", style="bold")
+    table.add_column("")
+    table.add_row("stations", f"{summary.n_stations}")
+    table.add_row("links", f"{summary.n_links}")
+    verdict = "passed" if summary.global_test_passed else "FAILED (sigmas scaled by sigma0)"
+    table.add_row("sigma0", f"{summary.sigma0:.3f} (global test {verdict})")
+    table.add_row("position sigma", f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm")
+    table.add_row("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm")
+    table.add_row("rejected observations", f"{summary.n_rejected}")
+    table.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items()))
+    out.print(table)
+
+
 @app.command("config")
 def config_command(
     defaults: Annotated[bool, typer.Option("--defaults", help="Print the default configuration.")] = False,

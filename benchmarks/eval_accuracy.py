@@ -1,0 +1,184 @@
+"""Accuracy of ``kinreg process`` against the simulator's ground truth.
+
+For each scenario: simulate a run (or use the committed sample), run the whole pipeline, then
+compare with the truth:
+
+- station positions: adjusted vs true (trajectory at the station time), after a rigid fit
+  (RMS, max) and in the datum (first station fixed);
+- honesty: normalised errors (error / reported sigma, per axis, in the datum) — their RMS should
+  be near 1 (accepted 0.7-1.5);
+- the corrected cloud: RMS of point-to-true-plane distances, next to what the true trajectory
+  gives (the range noise alone) and what the drifted input gives.
+
+Scenarios: ``sample`` (the committed sample_data run), ``heldout`` (another building layout,
+a 16-beam sensor, other drift and seeds: not used for any development decision), or both.
+
+Usage: python benchmarks/eval_accuracy.py [--scenario sample heldout] [--out benchmarks/accuracy.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def scenario_config(name: str):
+    from kinreg.simulation import (
+        BuildingConfig,
+        BuildingLayout,
+        DriftConfig,
+        SensorConfig,
+        SimulationConfig,
+        config_from_dict,
+    )
+
+    if name == "sample":
+        meta = json.loads((REPO / "sample_data" / "run_meta.json").read_text())
+        return config_from_dict(meta["config"])
+    if name == "heldout":
+        return SimulationConfig(
+            seed=42,
+            duration_s=300.0,
+            building=BuildingConfig(size_m=(30.0, 16.0, 3.2), n_rooms=4, layout=BuildingLayout.CENTRAL_CORRIDOR, seed=7),
+            sensor=SensorConfig(pulse_rate_hz=16_000.0, n_beams=16, line_rate_hz=10.0, head_rate_hz=0.0,
+                                range_sigma_m=0.01),
+            drift=DriftConfig(drift_pos_m_at_300s=0.06, drift_rot_deg_at_300s=0.35),
+        )
+    raise SystemExit(f"unknown scenario {name}")
+
+
+def read_stations(path: Path) -> dict[str, np.ndarray]:
+    with open(path) as f:
+        rows = list(csv.DictReader(f))
+    cols = {k: np.array([float(r[k]) if r[k] else np.nan for r in rows]) for k in
+            ("t", "x", "y", "z", "sx_mm", "sy_mm", "sz_mm", "s3d_mm")}
+    return cols
+
+
+def point_to_plane_rms(run, xyz_iter) -> float:
+    """RMS distance of points to their true plane (patch ids from the simulator, same order)."""
+    planes = run.scene.patches
+    normals = np.array([p.normal for p in planes])
+    d = np.array([p.d for p in planes])
+    sq, n = 0.0, 0
+    origin = run.origin
+    for block, xyz in xyz_iter:
+        pid = block.patch_id
+        r = np.einsum("ij,ij->i", xyz - origin, normals[pid]) - d[pid]
+        sq += float(np.sum(r**2))
+        n += len(r)
+    return float(np.sqrt(sq / n))
+
+
+def evaluate(name: str, workdir: Path) -> dict:
+    import laspy
+
+    from kinreg.config import KinregConfig
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.pipeline import ProcessInputs, process
+    from kinreg.report import rigid_fit
+    from kinreg.simulation import simulate_run, write_run
+
+    cfg = scenario_config(name)
+    if name == "sample":
+        data = REPO / "sample_data"
+    else:
+        data = workdir / "data"
+        write_run(simulate_run(cfg), data)
+    run = simulate_run(cfg)
+    t0 = time.perf_counter()
+    summary = process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz"), workdir / "out",
+                      KinregConfig(), overwrite=True)
+    wall = time.perf_counter() - t0
+
+    st = read_stations(workdir / "out" / "stations.csv")
+    truth = read_trajectory(data / "truth_trajectory.txt")
+    true_xyz = truth.pose_at(st["t"]).t_xyz
+    adj = np.column_stack([st["x"], st["y"], st["z"]])
+    initial_xyz = read_trajectory(data / "run_trajectory.txt").pose_at(st["t"]).t_xyz
+    R, t = rigid_fit(adj, true_xyz)
+    err_fit = np.linalg.norm(adj @ R.T + t - true_xyz, axis=1) * 1000
+    err_datum = (adj - true_xyz) * 1000
+    R0, t0_ = rigid_fit(initial_xyz, true_xyz)
+    err_initial_fit = np.linalg.norm(initial_xyz @ R0.T + t0_ - true_xyz, axis=1) * 1000
+    sig = np.column_stack([st["sx_mm"], st["sy_mm"], st["sz_mm"]])
+    free = sig.max(axis=1) > 0
+    z = err_datum[free] / sig[free]
+
+    # corrected cloud vs true planes, next to the true-trajectory cloud and the drifted input
+    def corrected():
+        with laspy.open(workdir / "out" / "corrected.laz") as r:
+            chunks = r.chunk_iterator(10**9)
+            points = next(chunks)
+            xyz = np.column_stack([points.x, points.y, points.z])
+        first = 0
+        for block in run.iter_cloud_blocks():
+            yield block, xyz[first:first + len(block)]
+            first += len(block)
+
+    def with_truth():
+        for block in run.iter_cloud_blocks():
+            poses = truth.pose_at(block.stamps_s)
+            yield block, poses.apply(block.xyz_sensor)
+
+    def drifted():
+        for block in run.iter_cloud_blocks():
+            yield block, block.xyz_obj
+
+    rms_corrected = point_to_plane_rms(run, corrected())
+    rms_truth = point_to_plane_rms(run, with_truth())
+    rms_input = point_to_plane_rms(run, drifted())
+    return {
+        "scenario": name,
+        "stations": int(len(adj)),
+        "links": summary.n_links,
+        "sigma0": summary.sigma0,
+        "global_test_passed": summary.global_test_passed,
+        "position_error_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_fit**2))), "max": float(err_fit.max())},
+        "position_error_input_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_initial_fit**2))),
+                                                    "max": float(err_initial_fit.max())},
+        "position_error_in_datum_mm": {"rms": float(np.sqrt(np.mean(np.sum(err_datum**2, axis=1)))),
+                                       "max": float(np.linalg.norm(err_datum, axis=1).max())},
+        "reported_sigma_3d_mm": {"rms": float(np.sqrt(np.mean(st["s3d_mm"][free] ** 2))),
+                                 "max": float(st["s3d_mm"].max())},
+        "normalised_error_rms": float(np.sqrt(np.mean(z**2))),
+        "normalised_error_rms_per_axis": np.sqrt(np.mean(z**2, axis=0)).tolist(),
+        "share_within_3_sigma": float(np.mean(np.abs(z) < 3)),
+        "cloud_point_to_plane_rms_mm": {"corrected": rms_corrected * 1000, "true_trajectory": rms_truth * 1000,
+                                        "input": rms_input * 1000,
+                                        "corrected_over_truth": rms_corrected / rms_truth},
+        "gaps_mm": {"mean": summary.gaps_mean_mm, "max": summary.gaps_max_mm},
+        "rejected_observations": summary.n_rejected,
+        "process_wall_s": wall,
+        "timings_s": summary.timings_s,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--scenario", nargs="+", default=["sample", "heldout"])
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "accuracy.json")
+    args = parser.parse_args()
+    results = []
+    for name in args.scenario:
+        with tempfile.TemporaryDirectory(prefix=f"kinreg-eval-{name}-") as tmp:
+            res = evaluate(name, Path(tmp))
+        print(json.dumps(res, indent=1), flush=True)
+        results.append(res)
+    args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
+                                    "results": results}, indent=1) + "\n")
+    print(f"written {args.out}")
+
+
+if __name__ == "__main__":
+    main()
+

@@ -1,0 +1,316 @@
+"""Sparse block adjustment of the station network (METHOD.md section 2, step 7).
+
+Unknowns: the poses ``T_obj_k`` of all stations, each as a right perturbation
+``T_k = T_k^0 . exp(x_k)`` of its current value (``x_k = (rho, phi)``, rho in the station
+frame). Observations: relative poses between stations with 6x6 (possibly rank-deficient)
+information matrices (:class:`~kinreg.types.RelativeObservation`): the plane-only information
+of every pairwise link, the trajectory's own relative pose between consecutive stations (once),
+and direct observations of station poses. Gauss-Newton on SE(3) with a sparse normal matrix
+(CHOLMOD where available). Fixed stations define the datum.
+
+After convergence: the a-posteriori standard deviation of unit weight and the global test,
+per-observation test statistics and redundancy numbers from the 6x6 blocks of the inverse
+(selected inversion: the inverse is never formed densely), data snooping (the worst observation
+above the critical value is removed and the network re-adjusted), and optionally a variance
+component per observation kind so that reported standard deviations follow the residuals.
+"""
+
+from __future__ import annotations
+
+import logging
+import numpy as np
+import scipy.sparse as sp
+from scipy import stats
+
+from kinreg.config import BlockConfig
+from kinreg.errors import EstimationError
+from kinreg.geometry import FloatArray, Pose, skew
+from kinreg.progress import NullProgress, Progress
+from kinreg.sparse import factorize, selected_inverse
+from kinreg.types import BlockResult, ObservationKind, ObservationTest, RelativeObservation
+
+log = logging.getLogger(__name__)
+
+
+def adjoint(T: Pose) -> FloatArray:
+    """SE(3) adjoints ``(..., 6, 6)`` for twists ordered (rho, phi): ``[[R, [t]x R], [0, R]]``."""
+    R = T.rotation_matrix
+    A = np.zeros((*T.shape, 6, 6))
+    A[..., :3, :3] = R
+    A[..., 3:, 3:] = R
+    A[..., :3, 3:] = skew(T.t_xyz) @ R
+    return A
+
+
+def _residuals(poses: Pose, obs_i: np.ndarray, obs_j: np.ndarray, Z: Pose, station: np.ndarray) -> FloatArray:
+    """e = log(Z^-1 T_i^-1 T_j) for relative observations, log(Z^-1 T_i) for station ones."""
+    T_i = poses[obs_i]
+    rel = T_i.inverse().compose(poses[np.where(station, obs_i, obs_j)])
+    rel = Pose(np.where(station[:, None], T_i.quat_wxyz, rel.quat_wxyz),
+               np.where(station[:, None], T_i.t_xyz, rel.t_xyz))
+    return Z.inverse().compose(rel).log()
+
+
+def _jacobians(poses: Pose, obs_i: np.ndarray, obs_j: np.ndarray, station: np.ndarray) -> tuple[FloatArray, FloatArray]:
+    """de/dx_i and de/dx_j (k, 6, 6), to first order in the residual."""
+    rel = poses[obs_i].inverse().compose(poses[np.where(station, obs_i, obs_j)])
+    J_i = -adjoint(rel.inverse())
+    J_j = np.broadcast_to(np.eye(6), J_i.shape).copy()
+    J_i[station] = np.eye(6)
+    J_j[station] = 0.0
+    return J_i, J_j
+
+
+def _assemble(n_free: int, col_i: np.ndarray, col_j: np.ndarray, J_i: FloatArray, J_j: FloatArray,
+              P: FloatArray, e: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
+    """Normal matrix (6 n_free square, sparse) and right-hand side from per-observation blocks.
+
+    ``col_i``/``col_j`` are the unknown-block indices of the observation's stations (-1: fixed
+    or absent). Vectorised COO assembly; duplicates are summed by the sparse constructor.
+    """
+    blocks_ii = np.einsum("kai,kab,kbj->kij", J_i, P, J_i)
+    blocks_jj = np.einsum("kai,kab,kbj->kij", J_j, P, J_j)
+    blocks_ij = np.einsum("kai,kab,kbj->kij", J_i, P, J_j)
+    g_i = np.einsum("kai,kab,kb->ki", J_i, P, e)
+    g_j = np.einsum("kai,kab,kb->ki", J_j, P, e)
+    rows, cols, vals = [], [], []
+    r6 = np.arange(6)
+
+    def put(bi: np.ndarray, bj: np.ndarray, blocks: FloatArray) -> None:
+        ok = (bi >= 0) & (bj >= 0)
+        if not ok.any():
+            return
+        bi, bj, blocks = bi[ok], bj[ok], blocks[ok]
+        rows.append((6 * bi[:, None, None] + r6[None, :, None]).repeat(6, axis=2).ravel())
+        cols.append((6 * bj[:, None, None] + r6[None, None, :]).repeat(6, axis=1).ravel())
+        vals.append(blocks.ravel())
+
+    put(col_i, col_i, blocks_ii)
+    put(col_j, col_j, blocks_jj)
+    put(col_i, col_j, blocks_ij)
+    put(col_j, col_i, np.transpose(blocks_ij, (0, 2, 1)))
+    size = 6 * n_free
+    N = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
+    b = np.zeros(size)
+    for bi, g in ((col_i, g_i), (col_j, g_j)):
+        ok = bi >= 0
+        np.add.at(b, (6 * bi[ok, None] + r6[None, :]).ravel(), -g[ok].ravel())
+    return N, b
+
+
+def _split_rank(info: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Eigenvectors (6, r) and eigenvalues (r,) of the determined part of an information matrix."""
+    w, V = np.linalg.eigh(0.5 * (info + info.T))
+    keep = w > 1e-9 * max(float(w[-1]), 1e-300)
+    return V[:, keep], w[keep]
+
+
+def _components(observations: list[RelativeObservation]) -> np.ndarray:
+    """Connected components of the station graph (label per station)."""
+    from scipy.sparse.csgraph import connected_components
+
+    n = 1 + max(max(o.i, o.j) for o in observations)
+    pairs = np.array([(o.i, o.j) for o in observations if o.j >= 0 and o.rank > 0], dtype=int).reshape(-1, 2)
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def adjust_block(
+    poses_initial: Pose,
+    observations: list[RelativeObservation],
+    fixed: np.ndarray,
+    config: BlockConfig,
+    progress: Progress | None = None,
+) -> BlockResult:
+    """Adjust the network.
+
+    ``poses_initial`` (n,) are the approximate station poses ``T_obj_scan``; ``fixed`` (n,) bool
+    marks the datum stations (held at their initial poses). Raises :class:`EstimationError` when
+    the datum leaves parts of the network undetermined (a disconnected part without a fixed or
+    directly observed station) or the normal matrix is singular.
+    """
+    progress = progress or NullProgress()
+    n = len(poses_initial)
+    fixed = np.asarray(fixed, dtype=bool)
+    if not fixed.any() and not any(o.kind is ObservationKind.STATION for o in observations):
+        raise EstimationError("no datum: fix at least one station or observe station poses directly")
+    _check_datum(observations, fixed, n)
+
+    active = np.ones(len(observations), dtype=bool)
+    kinds = np.array([o.kind.value for o in observations])
+    weights = {k.value: 1.0 for k in ObservationKind}
+    rejected_order: list[int] = []
+    vce_rounds = 0
+    progress.start("block adjustment", total=None, unit="iterations")
+    while True:
+        poses, iterations, factor, N, free_index = _gauss_newton(poses_initial, observations, active, fixed,
+                                                                   weights, config, progress)
+        tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed, free_index,
+                                                                  weights, factor, N, config)
+        if config.variance_components and vce_rounds < config.max_variance_rounds:
+            new_weights = _variance_components(tests, weights)
+            changed = any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
+            weights = new_weights
+            vce_rounds += 1
+            if changed:
+                continue
+        worst = max((t for t in tests if not t.rejected and np.isfinite(t.statistic) and t.redundancy > 0.05),
+                    key=lambda t: t.statistic / stats.chi2.ppf(1.0 - config.alpha, t.dof), default=None)
+        if (config.data_snooping and worst is not None
+                and worst.statistic > stats.chi2.ppf(1.0 - config.alpha, worst.dof)
+                and len(rejected_order) < config.max_rejections):
+            log.info("block: rejecting observation %d (%s %d-%d, statistic %.1f)", worst.index, worst.kind.value,
+                     worst.i, worst.j, worst.statistic)
+            active[worst.index] = False
+            rejected_order.append(worst.index)
+            _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
+            continue
+        break
+    progress.finish()
+
+    sigma0 = float(np.sqrt(omega / redundancy)) if redundancy > 0 else float("nan")
+    passed = bool(redundancy <= 0 or omega <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
+    factor_scale = sigma0**2 if (not passed and np.isfinite(sigma0)) else 1.0
+    cov_xi = np.zeros((n, 6, 6))
+    cov_xi[~fixed] = Qxx_blocks * factor_scale
+    R = poses.rotation_matrix
+    cov_position = R @ cov_xi[:, :3, :3] @ np.transpose(R, (0, 2, 1))
+    all_tests = list(tests) + [
+        ObservationTest(k, observations[k].kind, observations[k].i, observations[k].j, float("nan"),
+                        observations[k].rank, 0.0, float("nan"), True)
+        for k in rejected_order
+    ]
+    all_tests.sort(key=lambda t: t.index)
+    return BlockResult(
+        poses=poses,
+        poses_initial=poses_initial,
+        fixed=fixed,
+        cov_xi=cov_xi,
+        cov_position=cov_position,
+        sigma0=sigma0,
+        redundancy=float(redundancy),
+        global_test_passed=passed,
+        variance_factor=factor_scale,
+        iterations=iterations,
+        tests=tuple(all_tests),
+        variance_components={k: 1.0 / w for k, w in weights.items() if (kinds == k).any()},
+    )
+
+
+def _check_datum(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> None:
+    labels = _components(observations + [RelativeObservation(ObservationKind.PLANES, n - 1, n - 1,
+                                                               Pose.identity(), np.zeros((6, 6)), 0)])
+    anchored = set(labels[np.flatnonzero(fixed)])
+    anchored |= {labels[o.i] for o in observations if o.kind is ObservationKind.STATION}
+    loose = sorted(set(labels) - anchored)
+    if loose:
+        parts = [np.flatnonzero(labels == c) for c in loose]
+        described = ", ".join(f"stations {p[0]}-{p[-1]}" if len(p) > 1 else f"station {p[0]}" for p in parts[:5])
+        raise EstimationError(
+            f"the network has {len(loose)} part(s) without datum ({described}); they are not linked to the "
+            "fixed stations"
+        )
+
+
+def _arrays(observations: list[RelativeObservation], active: np.ndarray):
+    idx = np.flatnonzero(active)
+    obs = [observations[k] for k in idx]
+    obs_i = np.array([o.i for o in obs])
+    obs_j = np.array([max(o.j, 0) for o in obs])
+    station = np.array([o.kind is ObservationKind.STATION for o in obs])
+    Z = Pose.stack([o.Z for o in obs])
+    P = np.stack([o.info for o in obs])
+    kinds = np.array([o.kind.value for o in obs])
+    return idx, obs_i, obs_j, station, Z, P, kinds
+
+
+def _gauss_newton(poses_initial, observations, active, fixed, weights, config, progress):
+    idx, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
+    P = P * np.array([weights[k] for k in kinds])[:, None, None]
+    free_index = -np.ones(len(poses_initial), dtype=int)
+    free_index[~fixed] = np.arange(np.count_nonzero(~fixed))
+    n_free = int(np.count_nonzero(~fixed))
+    col_i = free_index[obs_i]
+    col_j = np.where(station, -1, free_index[obs_j])
+    poses = poses_initial
+    factor = N = None
+    for iteration in range(1, config.max_iterations + 1):
+        e = _residuals(poses, obs_i, obs_j, Z, station)
+        J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
+        N, b = _assemble(n_free, col_i, col_j, J_i, J_j, P, e)
+        factor = factorize(N)
+        dx = factor.solve(b).reshape(-1, 6)
+        step = np.zeros((len(poses), 6))
+        step[~fixed] = dx
+        poses = poses.compose(Pose.exp(step))
+        progress.advance(1)
+        if np.max(np.abs(dx)) < config.convergence:
+            break
+    else:
+        log.warning("block adjustment: no convergence after %d iterations", config.max_iterations)
+    return poses, iteration, factor, N, free_index
+
+
+def _test_observations(poses, observations, active, fixed, free_index, weights, factor, N, config):
+    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T."""
+    idx, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
+    e = _residuals(poses, obs_i, obs_j, Z, station)
+    J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
+    col_i = free_index[obs_i]
+    col_j = np.where(station, -1, free_index[obs_j])
+    pairs = np.array([(a, b) for a, b in zip(col_i, col_j, strict=True) if a >= 0 and b >= 0], dtype=int)
+    pairs = pairs.reshape(-1, 2)
+    diag, off = selected_inverse(N, 6, pairs, factor=factor)
+    off_map = {(int(a), int(b)): k for k, (a, b) in enumerate(pairs)}
+    tests: list[ObservationTest] = []
+    omega = 0.0
+    redundancy = 0.0
+    for k in range(len(idx)):
+        w = weights[kinds[k]]
+        V, lam = _split_rank(P[k] * w)
+        if len(lam) == 0:
+            continue
+        a, b = col_i[k], col_j[k]
+        JQJ = np.zeros((6, 6))
+        if a >= 0:
+            JQJ += J_i[k] @ diag[a] @ J_i[k].T
+        if b >= 0:
+            JQJ += J_j[k] @ diag[b] @ J_j[k].T
+        if a >= 0 and b >= 0:
+            cross = J_i[k] @ off[off_map[(a, b)]] @ J_j[k].T
+            JQJ += cross + cross.T
+        z = V.T @ e[k]
+        Q_zz = np.diag(1.0 / lam) - V.T @ JQJ @ V
+        r_k = float(len(lam) - np.trace(V.T @ JQJ @ V * lam[None, :]))
+        vtpv = float(z @ (lam * z))
+        omega += vtpv
+        redundancy += r_k
+        if r_k > 1e-6:
+            statistic = float(z @ np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True) @ z)
+        else:
+            statistic = float("nan")  # an uncontrolled observation cannot be tested
+        tests.append(ObservationTest(int(idx[k]), ObservationKind(kinds[k]), int(obs_i[k]), int(observations[idx[k]].j),
+                                     statistic, len(lam), r_k, float(np.sqrt(statistic / len(lam))), False,
+                                     vtpv))
+    Qxx_blocks = diag
+    return tests, omega, redundancy, Qxx_blocks
+
+
+def _variance_components(tests: list[ObservationTest], weights: dict[str, float]) -> dict[str, float]:
+    """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current
+    weights; the new weight is the current one divided by sigma_g^2, never above the a-priori
+    weight. Kinds with too little redundancy (< 5) keep their weight: their component cannot be
+    estimated."""
+    new = dict(weights)
+    for kind in weights:
+        group = [t for t in tests if t.kind.value == kind and not t.rejected]
+        r = sum(t.redundancy for t in group)
+        if r < 5:
+            continue
+        omega = sum(t.vtpv for t in group)
+        # Only ever inflate the a-priori model: errors shared by all links of a scan (plane-fit
+        # systematics) and the trajectory's drift (smooth in time) are invisible in residuals,
+        # so a factor below 1 would make the reported sigmas too optimistic.
+        new[kind] = min(1.0, weights[kind] / max(omega / r, 1e-6))
+    return new
+

@@ -1,0 +1,131 @@
+"""Drift correction: from adjusted station poses to a correction of every pose and point.
+
+At station k the correction ``C_k = T_k_adjusted . T_k_initial^-1`` maps the initial
+(drifted) object frame into the adjusted one. It is parametrised as a rotation ``rotvec_k``
+about the station's initial position ``p_k`` plus a shift ``delta_k = p_k_adjusted - p_k``::
+
+    x' = R(rotvec) (x - p(t)) + p(t) + delta
+
+so that the parameters stay small (no lever arm to a far-away origin, e.g. UTM) and can be
+interpolated. Between station times both are interpolated with a cubic spline (C2-smooth);
+before the first and after the last station the end values are held. ``p(t)`` is the
+trajectory's position at time t.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from kinreg.errors import CloudError
+from kinreg.geometry import FloatArray, Pose, quat_multiply, quat_normalize, quat_to_rotvec, rotvec_to_quat
+from kinreg.io.atomic import atomic_path
+from kinreg.progress import NullProgress, Progress
+from kinreg.types import Trajectory
+
+
+@dataclass(frozen=True, eq=False)
+class DriftCorrection:
+    """Interpolable correction: station times (k,), rotation vectors (k, 3), shifts (k, 3) [m]."""
+
+    stamps_s: FloatArray
+    rotvec: FloatArray
+    delta_m: FloatArray
+    trajectory: Trajectory
+
+    @classmethod
+    def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose, trajectory: Trajectory) -> DriftCorrection:
+        """From the initial and adjusted poses of the time-stamped stations (sorted by time)."""
+        order = np.argsort(stamps_s)
+        q_corr = quat_multiply(adjusted.quat_wxyz[order], initial.inverse().quat_wxyz[order])
+        return cls(np.asarray(stamps_s, dtype=np.float64)[order], quat_to_rotvec(q_corr),
+                   adjusted.t_xyz[order] - initial.t_xyz[order], trajectory)
+
+    def _at(self, query_s: FloatArray) -> tuple[FloatArray, FloatArray]:
+        t = np.clip(query_s, self.stamps_s[0], self.stamps_s[-1])
+        if len(self.stamps_s) == 1:
+            return np.broadcast_to(self.rotvec[0], (len(t), 3)), np.broadcast_to(self.delta_m[0], (len(t), 3))
+        spline = CubicSpline(self.stamps_s, np.hstack([self.rotvec, self.delta_m]), bc_type="natural")
+        values = spline(t)
+        return values[:, :3], values[:, 3:]
+
+    def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
+        """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,)."""
+        rotvec, delta = self._at(stamps_s)
+        inside = self.trajectory.covers(stamps_s)
+        pivot = np.empty_like(xyz)
+        t = np.clip(stamps_s, self.trajectory.t_start_s, self.trajectory.t_end_s)
+        pivot[:] = self.trajectory.pose_at(t).t_xyz
+        del inside
+        R = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix
+        return np.einsum("nij,nj->ni", R, xyz - pivot) + pivot + delta
+
+    def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
+        """The trajectory with every pose corrected (same rows, same times)."""
+        rotvec, delta = self._at(trajectory.stamps_s)
+        q = quat_normalize(quat_multiply(rotvec_to_quat(rotvec), trajectory.poses.quat_wxyz))
+        return Trajectory(trajectory.stamps_s, Pose(q, trajectory.poses.t_xyz + delta), trajectory.source,
+                          trajectory.extra, trajectory.extra_names)
+
+    def magnitude(self) -> tuple[FloatArray, FloatArray]:
+        """Per station: shift [m] and rotation [rad] of the correction."""
+        return np.linalg.norm(self.delta_m, axis=1), np.linalg.norm(self.rotvec, axis=1)
+
+
+def write_corrected_las(
+    source: str | Path,
+    target: str | Path,
+    correction: DriftCorrection,
+    chunk_points: int = 2_000_000,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+) -> int:
+    """Stream a LAS/LAZ file, correct every point by its time, write it with the same header,
+    point format, order and attributes (only X, Y, Z change). Returns the number of points."""
+    import laspy
+
+    from kinreg.io.las import _DECODE_ERRORS, _laz_backend
+
+    progress = progress or NullProgress()
+    source = Path(source)
+    n = 0
+    with atomic_path(target, overwrite=overwrite) as tmp:
+        try:
+            reader = laspy.open(source, laz_backend=_laz_backend())
+        except _DECODE_ERRORS as e:
+            raise CloudError(f"cannot open as LAS/LAZ: {e}", source) from None
+        with reader:
+            header = reader.header
+            compress = Path(target).suffix.lower() == ".laz"
+            progress.start("write cloud", total=header.point_count, unit="points")
+            with laspy.open(tmp, mode="w", header=header, do_compress=compress,
+                            laz_backend=_laz_backend() if compress else None) as writer:
+                for points in _chunks(reader, chunk_points, source):
+                    xyz = np.column_stack([points.x, points.y, points.z]).astype(np.float64)
+                    fixed = correction.apply_to_points(xyz, np.asarray(points.gps_time, dtype=np.float64))
+                    points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
+                    writer.write_points(points)
+                    n += len(points)
+                    progress.advance(len(points))
+            progress.finish()
+    return n
+
+
+def _chunks(reader, chunk_points: int, source: Path) -> Iterator:
+    from kinreg.io.las import _DECODE_ERRORS
+
+    iterator = reader.chunk_iterator(chunk_points)
+    while True:
+        try:
+            points = next(iterator)
+        except StopIteration:
+            return
+        except _DECODE_ERRORS as e:
+            raise CloudError(f"decoding failed (truncated or corrupted?): {e}", source) from None
+        if len(points) == 0:
+            return
+        yield points

@@ -1,0 +1,194 @@
+"""The network of stations: pairwise links over candidate pairs, and the block's observations.
+
+A *station* is a scan with a pose ``T_obj_scan`` (from the trajectory for quasi-static scans).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
+from kinreg.geometry import Pose, quat_to_rotvec
+from kinreg.matching import candidate_pairs, match_planes
+from kinreg.pairwise import adjust_pair, drift_sigmas
+from kinreg.progress import NullProgress, Progress
+from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, RelativeObservation, ScanKind
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Station:
+    """A node of the network: a scan's id, kind, time (nan for static) and initial pose."""
+
+    scan_id: int
+    name: str
+    kind: ScanKind
+    t_s: float
+    t_start_s: float
+    t_end_s: float
+    T_obj_scan: Pose
+    n_points: int
+    tau_s: float = float("nan")  # effective time offset of the scan's planes from t_s (window bias)
+
+
+def link_stations(
+    stations: Sequence[Station],
+    planes: Sequence[tuple[Plane, ...]],
+    matching: MatchingConfig,
+    drift: DriftConfig,
+    pairwise: PairwiseConfig,
+    progress: Progress | None = None,
+) -> list[Link]:
+    """Pairwise links over all candidate pairs (sequence neighbours and nearby stations).
+
+    ``planes[k]`` are the planes of ``stations[k]``. Pairs with fewer than
+    ``matching.min_matches`` plane matches are not linked. Returns the links in pair order.
+    """
+    progress = progress or NullProgress()
+    positions = np.array([s.T_obj_scan.t_xyz for s in stations])
+    pairs = candidate_pairs(positions, matching)
+    links: list[Link] = []
+    progress.start("link", total=len(pairs), unit="pairs")
+    for i, j in pairs:
+        si, sj = stations[i], stations[j]
+        T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
+        matches = match_planes(planes[i], planes[j], T_prior, matching)
+        if len(matches) >= matching.min_matches:
+            links.append(adjust_pair(i, j, planes[i], planes[j], T_prior, _dt(si, sj), matches, drift, pairwise))
+        progress.advance(1)
+    progress.finish()
+    n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
+    log.info("%d candidate pairs, %d links (%d rejected)", len(pairs), len(links), n_rejected)
+    return links
+
+
+def _dt(a: Station, b: Station) -> float:
+    """Time between two stations; static stations are treated as far apart in time (no prior
+    information from the trajectory ties them)."""
+    if np.isnan(a.t_s) or np.isnan(b.t_s):
+        return float("inf")
+    return abs(b.t_s - a.t_s)
+
+
+@dataclass(frozen=True)
+class DriftRates:
+    """How fast the trajectory drifts, per object axis: position [m/s] and rotation [rad/s],
+    plus the floors (short-term noise) [m], [rad]. ``sigma(dt)^2 = floor^2 + (rate dt)^2``."""
+
+    pos_m_per_s: np.ndarray
+    rot_rad_per_s: np.ndarray
+    pos_floor_m: float
+    rot_floor_rad: float
+    estimated: bool = False
+
+    @classmethod
+    def from_config(cls, drift: DriftConfig) -> DriftRates:
+        return cls(np.full(3, drift.sigma_pos_m_per_s), np.full(3, np.radians(drift.sigma_rot_deg_per_s)),
+                   drift.sigma_pos_floor_m, float(np.radians(drift.sigma_rot_floor_deg)))
+
+    def covariance(self, dt_s: float, T_obj_station: Pose, floor: bool = True) -> np.ndarray:
+        """6x6 covariance of a relative pose over ``dt_s`` in the station's frame (twist order)."""
+        R = T_obj_station.rotation_matrix
+        f_pos, f_rot = (self.pos_floor_m, self.rot_floor_rad) if floor else (0.0, 0.0)
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = R.T @ np.diag(f_pos**2 + (self.pos_m_per_s * dt_s) ** 2) @ R
+        cov[3:, 3:] = R.T @ np.diag(f_rot**2 + (self.rot_rad_per_s * dt_s) ** 2) @ R
+        return cov
+
+
+def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRates) -> np.ndarray:
+    """Covariance (6x6, station frame) of a quasi-static scan's frame against the true sensor
+    pose at its centre time: drift inside the window deforms the scan, and its planes fix the
+    frame at their points' mean time rather than at the centre. Modelled as the drift velocity
+    times the station's ``tau_s``, the RMS offset of its planes' mean point times from the centre
+    (measured by :func:`plane_time_offsets`; without it, ``W/sqrt(12)``, the RMS offset of a
+    uniformly random time in the window). Link residuals cannot reveal this error (it is common
+    to all links of a scan), so it is added explicitly: to the trajectory's links (which tie
+    sensor poses, not scan frames) and to the reported station covariances.
+    """
+    if np.isnan(station.t_s):
+        return np.zeros((6, 6))
+    tau = station.tau_s if np.isfinite(station.tau_s) else (station.t_end_s - station.t_start_s) / np.sqrt(12.0)
+    return rates.covariance(tau, T_obj_station, floor=False)
+
+
+def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
+                       band_m: float) -> float:
+    """RMS over a scan's planes of (mean time of the plane's points - ``t_s``) [s]; the points of
+    a plane are those within ``band_m`` of it and inside its extent. ``nan`` without planes."""
+    offsets = []
+    for plane in planes:
+        near = np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m
+        local = points_xyz[near] - plane.centroid_xyz
+        hull = plane.hull_xyz - plane.centroid_xyz
+        inside = np.ones(len(local), dtype=bool)
+        for axis in plane.basis_uv:
+            lo, hi = (hull @ axis).min(), (hull @ axis).max()
+            inside &= (local @ axis >= lo) & (local @ axis <= hi)
+        if inside.any():
+            offsets.append(float(np.mean(stamps_s[near][inside])) - t_s)
+    return float(np.sqrt(np.mean(np.square(offsets)))) if offsets else float("nan")
+
+
+def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates) -> DriftRates:
+    """The drift velocity measured by the adjustment: the change of the correction (shift at the
+    station, rotation) between consecutive quasi-static stations over their time difference,
+    RMS per object axis. The prior rates are a floor: the estimate only ever raises them.
+
+    Smooth drift is invisible in residuals (consecutive trajectory links err alike), but the
+    corrections themselves show it wherever planes fix the stations.
+    """
+    seq = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
+    if len(seq) < 3:
+        return prior
+    shift = result.poses.t_xyz[seq] - result.poses_initial.t_xyz[seq]
+    rot = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz[seq])
+    t = np.array([stations[k].t_s for k in seq])
+    dt = np.diff(t)[:, None]
+    pos_rate = np.sqrt(np.mean((np.diff(shift, axis=0) / dt) ** 2, axis=0))
+    rot_rate = np.sqrt(np.mean((np.diff(rot, axis=0) / dt) ** 2, axis=0))
+    return DriftRates(np.maximum(prior.pos_m_per_s, pos_rate), np.maximum(prior.rot_rad_per_s, rot_rate),
+                      prior.pos_floor_m, prior.rot_floor_rad, estimated=True)
+
+
+def with_window_bias(result: BlockResult, stations: Sequence[Station], rates: DriftRates) -> BlockResult:
+    """The block result with each free station's covariance increased by the window bias of the
+    station and of the datum station (positions are relative to the datum's scan frame)."""
+    cov_xi = result.cov_xi.copy()
+    datum = [k for k in np.flatnonzero(result.fixed)]
+    for k, s in enumerate(stations):
+        if result.fixed[k]:
+            continue
+        cov_xi[k] += window_bias_covariance(s, result.poses[k], rates)
+        for d in datum[:1]:
+            cov_xi[k] += window_bias_covariance(stations[d], result.poses[k], rates)
+    R = result.poses.rotation_matrix
+    cov_position = R @ cov_xi[:, :3, :3] @ np.transpose(R, (0, 2, 1))
+    return replace(result, cov_xi=cov_xi, cov_position=cov_position)
+
+
+def block_observations(
+    stations: Sequence[Station], links: Sequence[Link], rates: DriftRates
+) -> list[RelativeObservation]:
+    """The block's observations: every usable link's plane-only information, and the trajectory's
+    relative pose between consecutive quasi-static stations, once, weighted by the drift rates
+    (plus both scans' window bias: the block's unknowns are scan frames)."""
+    observations = [
+        RelativeObservation(ObservationKind.PLANES, link.scan_i, link.scan_j, link.T_i_j_planes,
+                            link.info_planes, link.rank)
+        for link in links
+        if link.status is LinkStatus.OK and link.rank > 0
+    ]
+    sequence = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
+    for a, b in zip(sequence[:-1], sequence[1:], strict=True):
+        sa, sb = stations[a], stations[b]
+        Z = sa.T_obj_scan.inverse().compose(sb.T_obj_scan)
+        cov = (rates.covariance(_dt(sa, sb), sa.T_obj_scan) + window_bias_covariance(sa, sa.T_obj_scan, rates)
+               + window_bias_covariance(sb, sa.T_obj_scan, rates))
+        observations.append(RelativeObservation(ObservationKind.TRAJECTORY, a, b, Z, np.linalg.inv(cov), 6))
+    return observations

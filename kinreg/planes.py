@@ -1,0 +1,540 @@
+"""Plane detection in one scan (METHOD.md section 2, step 5).
+
+Every scan (static or quasi-static) is searched for planar patches in its own frame:
+
+1. **Downsample** the finite points on a voxel grid (``voxel_m``, open3d) so that the search
+   sees every surface with about the same weight, whatever its range.
+2. **RANSAC** on the downsampled copy, one plane per round, inliers removed after each round.
+   Hypotheses are the planes of small cells (``ransac_cell_m``), each found by a small
+   three-point RANSAC inside the cell and refitted by least squares, not planes through three
+   points drawn from the whole scan: almost every cell of a building lies on some plane, so a
+   few hundred hypotheses per round (``ransac_iterations``) find even small planes. They are
+   scored on a random sample of the remaining points (``ransac_sample_points``), the best few on
+   all of them, and the winner is refined by least squares (locally optimised RANSAC). A winner
+   counts only if enough of its inliers lie in well-filled cells of a grid in the plane: a
+   surface fills its cells, stray points that line up by chance do not. The search stops at
+   ``max_planes`` planes or after a few rejected winners in a row.
+   open3d's ``segment_plane`` is not used: it needed 0.2-0.7 s per plane on 50-130 k downsampled
+   points here, i.e. 5-15 s for a scan of 20 planes, against a budget of about 1 s per scan.
+3. **Assign** every full-resolution point to the nearest plane within ``refit_distance_m``;
+   refit every plane by least squares and re-select its points around the refitted plane (a
+   band around a slightly tilted plane would cut one side's noise tail). A point within the band
+   of two crossing planes (the strip along a wall-floor edge) belongs to neither: it would pull
+   the plane it is not on, and along a door's threshold it would bridge the opening.
+4. **Split** each plane's inliers into connected patches on a 2D occupancy grid in the plane
+   (``patch_cell_m``, 8-connectivity; cells with fewer than ``patch_min_cell_points`` points do
+   not connect): the wall in front of a door and the wall behind it are two patches. Patches
+   with fewer than ``min_points`` points or a convex hull smaller than ``min_area_m2`` are
+   dropped (``area_m2`` is the hull's area: it is what matching compares extents with).
+5. **Refit** each patch: least squares, then once more without the points beyond three robust
+   sigmas (a neighbouring surface, outliers); then the covariance and the convex hull.
+
+The normal points towards the scan origin: ``n . (0 - centroid) > 0``, so ``d < 0``. For a
+quasi-static scan the origin is the virtual scanner centre; a surface seen only from a part of
+the window on its other side (walking through a door) would be oriented wrongly, which needs the
+per-point sensor positions, not in :class:`~kinreg.types.Scan`. Planes are numbered by
+decreasing inlier count. The result depends only on the points and the configuration (the seed
+included), not on timing or threads.
+
+Covariance (:func:`plane_covariance`). With the centroid ``c``, the scatter-matrix eigenvectors
+``u, v, n`` (eigenvalues ``l_u >= l_v >= l_n``) and in-plane coordinates ``s = u.(p-c)``,
+``t = v.(p-c)``, the residual of point ``p`` under a perturbed plane is
+``r = n.(p-c) + a s + b t - e_c``. The design columns ``[s, t, -1]`` are orthogonal, so with equal
+noise ``var(a) = s0^2 / l_u``, ``var(b) = s0^2 / l_v``, ``var(e_c) = s0^2 / N``, uncorrelated,
+``s0^2 = sum r^2 / (N - 3)``. kinreg uses the heteroscedasticity-consistent (sandwich) form of
+the same model, because range noise along the rays is smaller across the plane for grazing
+points than for frontal ones. The offset at the scan origin is ``d' = n'.c + e_c``, so
+``e = (u.c) a + (v.c) b + e_c``: the tilt sigmas reach ``d`` through the lever arm of the
+centroid. Range noise along the rays also biases the tilt slightly (at grazing incidence the
+in-plane shift of a point correlates with its residual): of the order of
+``sigma^2 sin(2 theta) / (2 var(s))``, about 2e-5-1e-4 rad for 1 cm noise on 1-2 m patches,
+below the default ``min_sigma_angle_rad``. The floors ``min_sigma_angle_rad`` and
+``min_sigma_d_m`` are added in quadrature (tilts, offset at the centroid): the least-squares
+sigmas shrink with the point count (0.03 mm for 1e5 points) while the errors of a real
+quasi-static scan are correlated (drift inside the window, incidence-dependent range bias,
+uneven walls).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
+
+from kinreg.config import PlanesConfig
+from kinreg.geometry import FloatArray
+from kinreg.types import Plane, Scan
+
+logger = logging.getLogger(__name__)
+
+IntArray = NDArray[np.int64]
+
+# Hypotheses first scored on the sample; this many of the best are then scored on all points.
+_TOP_HYPOTHESES = 4
+# Least-squares refinement rounds of the RANSAC winner on the downsampled points.
+_REFINE_ROUNDS = 3
+# A cell is a plane hypothesis if its thickness (smallest eigenvalue's sigma) is below this share
+# of the RANSAC threshold and its second sigma shows a surface, not a line.
+_CELL_THICKNESS_SHARE = 0.5
+_CELL_MIN_POINTS = 6  # at least, whatever the voxel size
+# Three-point planes tried per cell.
+_CELL_TRIPLETS = 12
+# A cell stops proposing planes once most of its points belong to accepted planes.
+_CELL_ALIVE_SHARE = 0.5
+# The search ends after this many rejected RANSAC winners in a row (what is left is clutter).
+_MAX_FAILED_ROUNDS = 5
+# Patch refit: points beyond this many robust sigmas of the first fit are dropped (3 sigma keeps
+# 99.7 % of Gaussian noise and removes neighbouring surfaces and outliers).
+_TRIM_SIGMAS = 3.0
+# A new RANSAC plane this close to an accepted one (angle, offset at its centroid) is the same
+# plane found again (a slightly bent wall); its points are removed without a new plane.
+_DUPLICATE_ANGLE_RAD = np.radians(2.0)
+# Planes at a larger angle than this cross: points in the bands of both are ambiguous.
+_CROSSING_ANGLE_RAD = np.radians(10.0)
+# The first full-resolution pass collects points within (1 + this) times the band, so that the
+# refitted planes (mm away from the RANSAC planes) find all of theirs in the second pass.
+_REASSIGN_MARGIN = 0.5
+# A cell (``ransac_cell_m``) crossed by a surface holds about (cell / voxel)^2 downsampled points.
+# Cells with fewer than this share of that propose no plane, and a RANSAC plane counts only its
+# inliers in cells of its own in-plane grid that are that full: a surface fills its cells, a
+# slab of stray points does not, nor a strip where a plane crosses a wall (it grows with the
+# cell's side, a surface with its square).
+_FILLED_CELL_SHARE = 0.4
+# A cell proposes a plane with this share: small surfaces (a cupboard side) fill few cells fully.
+_HYPOTHESIS_CELL_SHARE = 0.25
+# Largest occupancy grid (cells) of one plane's patch split; beyond it the cells are coarsened.
+_MAX_GRID_CELLS = 4_000_000
+
+
+def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
+    """Planar patches of ``scan``, in its frame, normals towards the scanner.
+
+    ``scan.points_xyz`` (N, 3) float64 metres in the scan frame (scanner at the origin);
+    non-finite points are ignored. Returns at most ``config.max_planes`` patches numbered
+    ``plane_id = 0..K-1`` by decreasing inlier count, ``scan_id`` copied from the scan; an empty
+    tuple for an empty or tiny scan or one without planes. Deterministic for a given
+    ``config.seed``.
+    """
+    points = np.asarray(scan.points_xyz, dtype=np.float64).reshape(-1, 3)
+    # A nan or inf coordinate makes the sum non-finite (a matrix-vector product is much faster
+    # than a reduction along the short axis); copy only if something must go.
+    finite = np.isfinite(points @ np.ones(3))
+    if not finite.all():
+        points = points[finite]
+    if len(points) < max(config.min_points, 3):
+        return ()
+    down = _voxel_downsample(points, config.voxel_m)
+    rng = np.random.default_rng(config.seed)
+    models = _ransac_planes(down, config, rng)
+    if not models:
+        return ()
+
+    # Two assignment passes: the second with the planes refitted on the full-resolution inliers,
+    # so that the band is centred on the best plane available (a band around a slightly tilted
+    # plane would cut one side's noise tail). The first pass collects a wider band, so the second
+    # only needs to re-check each point against its own plane.
+    band = config.refit_distance_m
+    labels = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN))
+    fitted: list[_Fit] = []
+    for k, idx in enumerate(_groups(labels, len(models))):
+        if len(idx) < config.min_points:
+            continue
+        group = points[idx]
+        n, d = models[k]
+        inliers = np.abs(group @ n - d) < band
+        if inliers.sum() < config.min_points:
+            continue
+        n, d = _refit(group[inliers])
+        group = group[np.abs(group @ n - d) < band]
+        if len(group) < config.min_points:
+            continue
+        for patch in _split_patches(group, n, config):
+            fit = _fit_patch(group[patch.index], patch, config)
+            if fit is not None:
+                fitted.append(fit)
+
+    # Deterministic numbering: by inlier count, ties by the centroid.
+    fitted.sort(key=lambda f: (-f.n_points, *np.round(f.centroid, 9)))
+    fitted = fitted[: config.max_planes]
+    planes = tuple(f.as_plane(scan.scan_id, i) for i, f in enumerate(fitted))
+    logger.debug("scan %d: %d points, %d downsampled, %d planes, %d patches", scan.scan_id, len(points),
+                 len(down), len(models), len(planes))
+    return planes
+
+
+# --------------------------------------------------------------------------- least squares
+
+
+def fit_plane_lsq(points_xyz: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Least-squares plane through ``points_xyz`` (N >= 3, metres).
+
+    Returns ``(centroid (3,), eigenvalues (3,) ascending, eigenvectors (3, 3) as columns)`` of
+    the centred scatter matrix ``sum (p - c)(p - c)^T``; the normal is the first column.
+    """
+    c = points_xyz.mean(axis=0)
+    X = points_xyz - c
+    w, V = np.linalg.eigh(X.T @ X)
+    return c, w, V
+
+
+def plane_covariance(
+    st_m: FloatArray,
+    resid_m: FloatArray,
+    centroid_xyz: FloatArray,
+    basis_uv: FloatArray,
+    min_sigma_angle_rad: float = 0.0,
+    min_sigma_d_m: float = 0.0,
+) -> FloatArray:
+    """3x3 covariance of (tilt towards u [rad], tilt towards v [rad], d [m]) of a fitted plane.
+
+    ``st_m`` (N, 2) are the inliers' coordinates along ``basis_uv`` (2, 3) about the centroid
+    ``centroid_xyz`` (scan frame), ``resid_m`` (N,) their residuals; ``basis_uv`` must be the
+    scatter-matrix eigenvectors (then ``sum s t = 0``). The covariance of (a, b, e_c) is the
+    heteroscedasticity-consistent sandwich ``N^-1 (A^T diag(r^2) A) N^-1 * N / (N - 3)`` with
+    the design ``A = [s, t, -1]`` and ``N = A^T A = diag(sum s^2, sum t^2, N)``: range noise along
+    the rays makes far, grazing points less noisy across the plane than near ones, and the plain
+    ``s^2 N^-1`` then misjudges the offset at the origin by 20-40 %. With equal noise it is
+    ``s^2 N^-1`` (module docstring). The floors are added in quadrature to the tilt sigmas and to
+    the sigma of the offset at the centroid; then the offset is carried to the scan origin.
+    """
+    n_pts = len(resid_m)
+    w = resid_m * resid_m
+    ws = st_m * w[:, None]
+    meat = np.empty((3, 3))
+    meat[:2, :2] = np.einsum("ni,nj->ij", ws, st_m)  # not BLAS: same bits for any thread count
+    meat[:2, 2] = meat[2, :2] = -ws.sum(axis=0)
+    meat[2, 2] = w.sum()
+    N_inv = 1.0 / np.array([*np.einsum("ni,ni->i", st_m, st_m), float(n_pts)])
+    cov_c = N_inv[:, None] * meat * N_inv[None, :] * (n_pts / max(n_pts - 3, 1))
+    cov_c[0, 0] += min_sigma_angle_rad**2
+    cov_c[1, 1] += min_sigma_angle_rad**2
+    cov_c[2, 2] += min_sigma_d_m**2
+    # d' = n'.c + e_c: a tilt a towards u moves the offset at the origin by a (u.c).
+    J = np.eye(3)
+    J[2, 0] = basis_uv[0] @ centroid_xyz
+    J[2, 1] = basis_uv[1] @ centroid_xyz
+    return J @ cov_c @ J.T
+
+
+class _Fit:
+    """A refitted patch before it gets its ids."""
+
+    def __init__(self, normal: FloatArray, d: float, centroid: FloatArray, basis_uv: FloatArray,
+                 cov: FloatArray, hull: FloatArray, area: float, n_points: int, rms: float) -> None:
+        self.normal, self.d, self.centroid, self.basis_uv = normal, d, centroid, basis_uv
+        self.cov, self.hull, self.area, self.n_points, self.rms = cov, hull, area, n_points, rms
+
+    def as_plane(self, scan_id: int, plane_id: int) -> Plane:
+        return Plane(scan_id=scan_id, plane_id=plane_id, normal=self.normal, d_m=self.d,
+                     centroid_xyz=self.centroid, basis_uv=self.basis_uv, cov_uvd=self.cov,
+                     hull_xyz=self.hull, area_m2=self.area, n_points=self.n_points, rms_m=self.rms)
+
+
+def _fit_patch(points: FloatArray, patch: _Patch, config: PlanesConfig) -> _Fit | None:
+    """Least-squares fit, trim at three robust sigmas, refit; covariance, hull, orientation.
+
+    ``points`` (N, 3) are the patch's points, ``patch`` its grid cells (for the hull).
+    """
+    c = points.mean(axis=0)
+    X = points - c
+    _, V = np.linalg.eigh(X.T @ X)
+    r = X @ V[:, 0]
+    sigma_robust = 1.4826 * float(np.median(np.abs(r)))
+    keep = np.abs(r) <= max(_TRIM_SIGMAS * sigma_robust, 1e-9)
+    cells = patch.cell
+    if not keep.all():
+        X, cells = X[keep], cells[keep]
+        if len(X) < max(config.min_points, 4):
+            return None
+        shift = X.mean(axis=0)
+        X -= shift
+        c = c + shift
+    _, V = np.linalg.eigh(X.T @ X)
+    n = V[:, 0]
+    # Towards the scanner at the origin: n . (0 - c) > 0.
+    if n @ c > 0:
+        n = -n
+    u = V[:, 2]
+    # Fix the sign of u (eigh's is arbitrary) and make (u, v, n) right-handed.
+    if u[np.argmax(np.abs(u))] < 0:
+        u = -u
+    basis = np.stack([u, np.cross(n, u)])
+    proj = X @ np.column_stack([basis[0], basis[1], n])  # (N, 3): s, t in the plane, residual
+    st, r = proj[:, :2], proj[:, 2]
+    hull_st, area = _hull_2d(st, patch.hull_candidates(cells))
+    if area < config.min_area_m2:
+        return None
+    cov = plane_covariance(st, r, c, basis, config.min_sigma_angle_rad, config.min_sigma_d_m)
+    hull_xyz = c + hull_st @ basis
+    return _Fit(n, float(n @ c), c, basis, cov, hull_xyz, area, len(X), float(np.sqrt(np.mean(r**2))))
+
+
+def _hull_2d(st: FloatArray, candidates: NDArray[np.bool_]) -> tuple[FloatArray, float]:
+    """Convex hull (K, 2), counter-clockwise, and its area of 2D points; empty if degenerate.
+
+    Only the ``candidates`` can be hull vertices (:meth:`_Patch.hull_candidates`).
+    """
+    cand = st[candidates]
+    try:
+        hull = ConvexHull(cand)
+    except (QhullError, ValueError):
+        return np.zeros((0, 2)), 0.0
+    return cand[hull.vertices], float(hull.volume)
+
+
+# --------------------------------------------------------------------------- downsampling, RANSAC
+
+
+def _voxel_downsample(points: FloatArray, voxel_m: float) -> FloatArray:
+    """Centroids of the occupied voxels, sorted lexicographically (order-independent of open3d)."""
+    import open3d as o3d  # imported here: open3d takes a second to import and only this stage needs it
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    down = np.asarray(pcd.voxel_down_sample(voxel_m).points)
+    return down[np.lexsort(down.T[::-1])]
+
+
+def _cell_planes(points: FloatArray, cell_m: float, distance_m: float, min_points: float,
+                 rng: np.random.Generator) -> tuple[IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Group ``points`` into cubic cells; a robust plane in every cell.
+
+    Each cell tries ``_CELL_TRIPLETS`` planes through three of its points (a small RANSAC, all
+    cells at once), keeps the one with the most points within ``distance_m`` and refits it by
+    least squares on those: clutter and stray points in a cell do not tilt its plane.
+    Returns the cell of every point (M,), the cells' normals (C, 3) and offsets (C,), and which
+    cells are planar enough to propose a plane (``min_points`` inliers or more).
+    """
+    q = np.floor(points / cell_m).astype(np.int64)
+    q -= q.min(axis=0)
+    dims = q.max(axis=0) + 1
+    key = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+    _, cell, count = np.unique(key, return_inverse=True, return_counts=True)
+    cell = cell.reshape(-1)
+    n_cells = len(count)
+    order = np.argsort(cell, kind="stable")
+    start = np.searchsorted(cell[order], np.arange(n_cells))
+    # Triplets: three random members of each cell (repeats give degenerate planes, scored 0).
+    pick = (rng.random((n_cells, _CELL_TRIPLETS, 3)) * count[:, None, None]).astype(np.int64)
+    tri = points[order[start[:, None, None] + pick]]  # (C, T, 3 points, 3)
+    nrm = np.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0])
+    length = np.linalg.norm(nrm, axis=2)
+    ok = length > 1e-9
+    nrm = nrm / np.where(ok, length, 1.0)[:, :, None]
+    off = np.einsum("ctj,ctj->ct", nrm, tri[:, :, 0])
+    resid = np.abs(np.einsum("ij,itj->it", points, nrm[cell]) - off[cell])  # (M, T)
+    within = (resid < distance_m) & ok[cell]
+    votes = np.stack([np.bincount(cell, within[:, t], n_cells) for t in range(_CELL_TRIPLETS)], axis=1)
+    best = np.argmax(votes, axis=1)
+    w = within[np.arange(len(points)), best[cell]].astype(np.float64)
+    # Least squares on the best triplet's inliers, all cells at once.
+    cnt = np.bincount(cell, w, n_cells)
+    safe = np.maximum(cnt, 1.0)
+    mean = np.stack([np.bincount(cell, w * points[:, i], n_cells) for i in range(3)], axis=1) / safe[:, None]
+    X = points - mean[cell]
+    C = np.empty((n_cells, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            C[:, i, j] = C[:, j, i] = np.bincount(cell, w * X[:, i] * X[:, j], n_cells) / safe
+    ev, V = np.linalg.eigh(C)
+    normals = V[:, :, 0]
+    offsets = np.einsum("ij,ij->i", normals, mean)
+    thin = np.sqrt(np.maximum(ev[:, 0], 0.0)) < _CELL_THICKNESS_SHARE * distance_m
+    wide = np.sqrt(np.maximum(ev[:, 1], 0.0)) > 0.15 * cell_m
+    planar = thin & wide & (cnt >= min_points)
+    return cell, normals, offsets, planar
+
+
+def _ransac_planes(down: FloatArray, config: PlanesConfig,
+                   rng: np.random.Generator) -> list[tuple[FloatArray, float]]:
+    """Planes ``(normal (3,), d)`` found one by one in the downsampled points, largest first."""
+    thr = config.distance_m
+    # A valid patch has min_points points or covers min_area_m2; its downsampled copy has at least
+    # about the smaller of min_points and area / voxel^2 points. Half of that stops the search.
+    min_votes = max(10, int(0.5 * min(config.min_points, config.min_area_m2 / config.voxel_m**2)))
+    if len(down) < min_votes:
+        return []
+    full = (config.ransac_cell_m / config.voxel_m) ** 2
+    filled = max(_CELL_MIN_POINTS, _FILLED_CELL_SHARE * full)
+    cell, hyp_n, hyp_d, valid = _cell_planes(down, config.ransac_cell_m, thr,
+                                             max(_CELL_MIN_POINTS, _HYPOTHESIS_CELL_SHARE * full), rng)
+    cell_total = np.bincount(cell, minlength=len(hyp_d))
+    alive = np.ones(len(down), dtype=bool)
+    models: list[tuple[FloatArray, float]] = []
+    failed = 0
+    for _ in range(3 * config.max_planes):
+        if len(models) >= config.max_planes or failed >= _MAX_FAILED_ROUNDS:
+            break
+        cand = np.flatnonzero(valid)
+        alive_idx = np.flatnonzero(alive)
+        if len(cand) == 0 or len(alive_idx) < min_votes:
+            break
+        hyp = rng.choice(cand, size=min(config.ransac_iterations, len(cand)), replace=False)
+        sample = alive_idx
+        if len(alive_idx) > config.ransac_sample_points:
+            sample = rng.choice(alive_idx, size=config.ransac_sample_points, replace=False)
+        votes = (np.abs(down[sample] @ hyp_n[hyp].T - hyp_d[hyp]) < thr).sum(axis=0)
+        top = hyp[np.argsort(-votes, kind="stable")[:_TOP_HYPOTHESES]]
+        rest = down[alive_idx]
+        full_votes = (np.abs(rest @ hyp_n[top].T - hyp_d[top]) < thr).sum(axis=0)
+        best = int(top[np.argmax(full_votes)])
+        n, d = hyp_n[best], float(hyp_d[best])
+        inl = np.abs(rest @ n - d) < thr
+        for _ in range(_REFINE_ROUNDS):
+            if inl.sum() < 3:
+                break
+            c, _, V = fit_plane_lsq(rest[inl])
+            n, d = V[:, 0], float(V[:, 0] @ c)
+            inl = np.abs(rest @ n - d) < thr
+        n_inl = int(inl.sum())
+        support = _dense_support(rest[inl], n, config.ransac_cell_m, filled) if n_inl >= min_votes else 0
+        logger.debug("RANSAC round: %d candidate cells, %d inliers, %d in filled cells (need %d)",
+                     len(cand), n_inl, support, min_votes)
+        if support < min_votes:
+            # Too small, or stray points that happen to line up (clutter, outliers): not a
+            # surface. The cells on this plane propose no more; the points stay for the planes
+            # they may belong to.
+            valid[best] = False
+            valid &= ~_same_plane(hyp_n, hyp_d, n, d, thr)
+            failed += 1
+            continue
+        failed = 0
+        c = rest[inl].mean(axis=0)
+        duplicate = any(abs(float(m @ n)) > np.cos(_DUPLICATE_ANGLE_RAD) and abs(float(m @ c) - dm) < thr
+                        for m, dm in models)
+        if not duplicate:
+            models.append((n, d))
+        alive[alive_idx[inl]] = False
+        valid[best] = False
+        remaining = np.bincount(cell[alive], minlength=len(hyp_d))
+        valid &= remaining >= _CELL_ALIVE_SHARE * cell_total
+    return models
+
+
+def _same_plane(normals: FloatArray, offsets: FloatArray, n: FloatArray, d: float,
+                distance_m: float) -> NDArray[np.bool_]:
+    """Which planes (K, 3), (K,) (either normal sign) coincide with (n, d)."""
+    cos = normals @ n
+    return (np.abs(cos) > np.cos(_DUPLICATE_ANGLE_RAD)) & (np.abs(np.sign(cos) * offsets - d) < distance_m)
+
+
+def _dense_support(points: FloatArray, normal: FloatArray, cell_m: float, filled: float) -> int:
+    """How many of a plane's (downsampled) inliers lie in cells of a grid in the plane that hold
+    at least ``filled`` of them (see ``_FILLED_CELL_SHARE``)."""
+    st = points @ _in_plane_basis(normal).T
+    ij = np.floor(st / cell_m).astype(np.int64)
+    ij -= ij.min(axis=0)
+    _, counts = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_counts=True)
+    return int(counts[counts >= filled].sum())
+
+
+def _in_plane_basis(normal: FloatArray) -> FloatArray:
+    """Any two unit vectors (2, 3) orthogonal to ``normal`` and to each other."""
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(normal, u)])
+
+
+# --------------------------------------------------------------------------- full resolution
+
+
+def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray, float]],
+                    band_m: float, collect_m: float) -> IntArray:
+    """Index of the nearest plane within ``collect_m`` of every point, ``len(models)`` for none.
+
+    A point within ``band_m`` of two planes that cross (the strip along a wall-floor edge) is
+    ambiguous and belongs to neither: it would pull the fit of the plane it is not on, and it
+    would bridge a door opening (the floor's edge runs through it) so that the patch split could
+    not see the gap. Near-parallel planes (a poster on a wall) just take the nearest.
+    float32 is enough to choose the plane (micrometres at 30 m); the fits use float64.
+    """
+    none = len(models)
+    label = np.full(len(points32), none, dtype=np.int64)
+    best = np.full(len(points32), np.inf, dtype=np.float32)
+    ambiguous = np.zeros(len(points32), dtype=bool)
+    if not models:
+        return label
+    normals = np.array([n for n, _ in models])
+    crossing = np.abs(normals @ normals.T) < np.cos(_CROSSING_ANGLE_RAD)
+    crossing = np.concatenate([crossing, np.zeros((none, 1), dtype=bool)], axis=1)  # column: no plane
+    for k, (n, d) in enumerate(models):
+        r = points32 @ n.astype(np.float32)
+        r -= np.float32(d)
+        np.abs(r, out=r)
+        idx = np.flatnonzero(r < collect_m)
+        rk = r[idx]
+        prev = label[idx]
+        ambiguous[idx] |= (rk < band_m) & (best[idx] < band_m) & crossing[k, prev]
+        closer = rk < best[idx]
+        idx = idx[closer]
+        best[idx] = rk[closer]
+        label[idx] = k
+    label[ambiguous] = none
+    return label
+
+
+def _groups(labels: IntArray, n_groups: int) -> list[IntArray]:
+    """Point indices of each label ``0..n_groups-1`` (one sort instead of a pass per label)."""
+    # int16 labels make numpy's stable sort a linear-time radix sort.
+    small = labels.astype(np.int16)
+    order = np.argsort(small, kind="stable")
+    bounds = np.searchsorted(small[order], np.arange(n_groups + 1))
+    return [order[bounds[k] : bounds[k + 1]] for k in range(n_groups)]
+
+
+def _refit(points: FloatArray) -> tuple[FloatArray, float]:
+    """Least-squares plane ``(normal, d)`` of ``points`` (at least three)."""
+    c, _, V = fit_plane_lsq(points)
+    return V[:, 0], float(V[:, 0] @ c)
+
+
+class _Patch:
+    """A connected patch of one plane's points: their indices and grid cells (flat, row-major)."""
+
+    def __init__(self, index: IntArray, cell: IntArray, grid_shape: tuple[int, int]) -> None:
+        self.index, self.cell, self.grid_shape = index, cell, grid_shape
+
+    def hull_candidates(self, cell: IntArray) -> NDArray[np.bool_]:
+        """Which points (given by their cells) can be vertices of the convex hull.
+
+        A point whose cell has all of its 5 x 5 neighbourhood occupied is not: in any direction
+        a neighbour two cells away holds a point farther out. Exact, and it leaves Qhull only
+        the rim of a large patch.
+        """
+        occupied = np.bincount(cell, minlength=self.grid_shape[0] * self.grid_shape[1]) > 0
+        interior = ndimage.binary_erosion(occupied.reshape(self.grid_shape), np.ones((5, 5), dtype=bool),
+                                          border_value=0)
+        return ~interior.reshape(-1)[cell]
+
+
+def _split_patches(points: FloatArray, normal: FloatArray, config: PlanesConfig) -> list[_Patch]:
+    """The connected patches of one plane's points (occupancy grid in the plane, 8-connected).
+
+    Cells with fewer than ``patch_min_cell_points`` points neither join nor connect patches.
+    Patches with fewer than ``min_points`` points are left out; ordered by size, largest first.
+    """
+    st = points @ _in_plane_basis(normal).T  # any in-plane basis will do for the grid
+    st -= st.min(axis=0)
+    cell_m = config.patch_cell_m
+    extent = st.max(axis=0)
+    # A stray far point must not blow up the dense grid: coarsen it instead (very large planes).
+    while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:
+        cell_m *= 2.0
+    ij = np.floor(st / cell_m).astype(np.int64)
+    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    occupancy = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
+    grid, n_labels = ndimage.label(occupancy >= config.patch_min_cell_points, structure=np.ones((3, 3)))
+    point_label = grid.reshape(-1)[flat]
+    sizes = np.bincount(point_label, minlength=n_labels + 1)
+    sizes[0] = 0
+    patches = []
+    for lab in np.argsort(-sizes, kind="stable"):
+        if sizes[lab] < config.min_points:
+            break
+        idx = np.flatnonzero(point_label == lab)
+        patches.append(_Patch(idx, flat[idx], shape))
+    return patches

@@ -1,0 +1,156 @@
+"""Block adjustment on synthetic networks with known truth."""
+
+import numpy as np
+import pytest
+
+from kinreg.block import adjust_block
+from kinreg.config import BlockConfig
+from kinreg.errors import EstimationError
+from kinreg.geometry import Pose, rotvec_to_quat
+from kinreg.types import ObservationKind, RelativeObservation
+
+
+def true_stations(n: int, rng) -> Pose:
+    s = np.arange(n)
+    xyz = np.column_stack([8 * np.cos(s / n * 2 * np.pi), 5 * np.sin(s / n * 2 * np.pi), 1.5 + 0.1 * rng.normal(size=n)])
+    rot = np.column_stack([0.05 * rng.normal(size=n), 0.05 * rng.normal(size=n), s / n * 2 * np.pi])
+    return Pose(rotvec_to_quat(rot), xyz)
+
+
+def observe(truth: Pose, i: int, j: int, cov: np.ndarray, kind, rng, info=None) -> RelativeObservation:
+    """A relative observation of T_i_j drawn from N(truth, cov) in the right-perturbation twist."""
+    T = truth[i].inverse().compose(truth[j])
+    Z = T.compose(Pose.exp(rng.multivariate_normal(np.zeros(6), cov)))
+    info = np.linalg.inv(cov) if info is None else info
+    return RelativeObservation(kind, i, j, Z, info, int(np.linalg.matrix_rank(info)))
+
+
+def rank_deficient_obs(truth, i, j, sigmas, free_axis, rng):
+    """Planes that do not fix translation along ``free_axis`` (of station i): info rank 5."""
+    cov = np.diag(np.square(sigmas))
+    e = rng.multivariate_normal(np.zeros(6), cov)
+    e[free_axis] = rng.normal(0, 1.0)  # anything: not observed
+    T = truth[i].inverse().compose(truth[j])
+    info = np.linalg.inv(cov)
+    info[free_axis, :] = 0
+    info[:, free_axis] = 0
+    return RelativeObservation(ObservationKind.PLANES, i, j, T.compose(Pose.exp(e)), info, 5)
+
+
+def network(rng, n=60, traj_sigma=(3e-3, 3e-3, 3e-3, 5e-4, 5e-4, 5e-4), plane_sigma=(1e-3,) * 3 + (1e-4,) * 3):
+    truth = true_stations(n, rng)
+    obs = []
+    cov_t = np.diag(np.square(traj_sigma))
+    cov_p = np.diag(np.square(plane_sigma))
+    for i in range(n - 1):
+        obs.append(observe(truth, i, i + 1, cov_t, ObservationKind.TRAJECTORY, rng))
+        for j in range(i + 1, min(n, i + 4)):
+            if (i + j) % 5 == 0:
+                obs.append(rank_deficient_obs(truth, i, j, plane_sigma, 0, rng))
+            else:
+                obs.append(observe(truth, i, j, cov_p, ObservationKind.PLANES, rng))
+    for i in range(0, 8):  # loop closure
+        obs.append(observe(truth, i, n - 1 - i, cov_p, ObservationKind.PLANES, rng))
+    # approximate poses: the truth, drifted
+    drift = Pose.exp(np.column_stack([np.linspace(0, 0.05, n)[:, None] * [1, -1, 0.5],
+                                      np.linspace(0, 0.003, n)[:, None] * [0.2, 0.1, 1]]))
+    initial = Pose(truth.quat_wxyz.copy(), truth.t_xyz.copy())
+    initial = Pose(initial.quat_wxyz, initial.t_xyz)
+    approx = initial.compose(drift)
+    approx = Pose(np.concatenate([truth.quat_wxyz[:1], approx.quat_wxyz[1:]]),
+                  np.concatenate([truth.t_xyz[:1], approx.t_xyz[1:]]))
+    return truth, approx, obs
+
+
+def normalised_errors(result, truth):
+    err = truth.inverse().compose(result.poses).log()  # right-perturbation error per station
+    free = ~result.fixed
+    sig = np.sqrt(np.diagonal(result.cov_xi, axis1=1, axis2=2))
+    return err[free] / sig[free]
+
+
+def test_recovers_truth_with_honest_sigmas():
+    cfg = BlockConfig(variance_components=False)
+    ratios = []
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        truth, approx, obs = network(rng)
+        fixed = np.zeros(len(approx), dtype=bool)
+        fixed[0] = True
+        res = adjust_block(approx, obs, fixed, cfg)
+        assert res.iterations < cfg.max_iterations
+        ratios.append(normalised_errors(res, truth))
+        assert 0.7 < res.sigma0 < 1.3
+    z = np.concatenate(ratios)
+    rms = np.sqrt(np.mean(z**2))
+    assert 0.85 < rms < 1.15, rms
+    assert np.mean(np.abs(z) < 3) > 0.99
+
+
+def test_position_sigma_is_rotated_into_the_object_frame():
+    rng = np.random.default_rng(1)
+    truth, approx, obs = network(rng)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    res = adjust_block(approx, obs, fixed, BlockConfig())
+    k = 30
+    R = res.poses.rotation_matrix[k]
+    np.testing.assert_allclose(res.cov_position[k], R @ res.cov_xi[k, :3, :3] @ R.T)
+    assert np.all(res.sigma_position_m[0] == 0)
+    # sigma grows away from the datum
+    assert res.sigma_position_m[30].max() > res.sigma_position_m[2].max()
+
+
+def test_variance_components_rescale_a_too_optimistic_group():
+    """Trajectory links claim 3x better than they are: the estimated component corrects the sigmas."""
+    rng = np.random.default_rng(5)
+    n = 60
+    truth = true_stations(n, rng)
+    true_cov_t = np.diag(np.square([6e-3] * 3 + [1e-3] * 3))
+    claimed_info_t = np.linalg.inv(true_cov_t / 9.0)
+    cov_p = np.diag(np.square([1e-3] * 3 + [1e-4] * 3))
+    obs = []
+    for i in range(n - 1):
+        obs.append(observe(truth, i, i + 1, true_cov_t, ObservationKind.TRAJECTORY, rng, info=claimed_info_t))
+        # the plane links are redundant among themselves, so each group's variance is estimable
+        obs.append(observe(truth, i, i + 1, cov_p, ObservationKind.PLANES, rng))
+        if i + 2 < n:
+            obs.append(observe(truth, i, i + 2, cov_p, ObservationKind.PLANES, rng))
+    fixed = np.zeros(n, dtype=bool)
+    fixed[0] = True
+    res = adjust_block(truth, obs, fixed, BlockConfig(variance_components=True, data_snooping=False))
+    assert res.variance_components["trajectory"] == pytest.approx(9.0, rel=0.35)
+    assert res.variance_components["planes"] == pytest.approx(1.0, rel=0.35)
+
+
+def test_gross_error_is_found_by_data_snooping():
+    rng = np.random.default_rng(7)
+    truth, approx, obs = network(rng)
+    bad = next(k for k, o in enumerate(obs) if o.kind is ObservationKind.PLANES and o.i == 20 and o.rank == 6)
+    o = obs[bad]
+    obs[bad] = RelativeObservation(o.kind, o.i, o.j, o.Z.compose(Pose.exp([0.05, 0, 0, 0, 0, 0])), o.info, o.rank)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    res = adjust_block(approx, obs, fixed, BlockConfig())
+    rejected = [t.index for t in res.tests if t.rejected]
+    assert bad in rejected
+    assert len(rejected) <= 3
+    z = normalised_errors(res, truth)
+    assert np.sqrt(np.mean(z**2)) < 1.5
+
+
+def test_disconnected_network_is_a_clear_error():
+    rng = np.random.default_rng(2)
+    truth, approx, obs = network(rng, n=20)
+    obs = [o for o in obs if not (o.i < 10 <= o.j)]  # cut all links across 9/10
+    fixed = np.zeros(20, dtype=bool)
+    fixed[0] = True
+    with pytest.raises(EstimationError, match="1 part\\(s\\) without datum \\(stations 10-19\\)"):
+        adjust_block(approx, obs, fixed, BlockConfig())
+
+
+def test_no_datum_is_a_clear_error():
+    rng = np.random.default_rng(2)
+    _, approx, obs = network(rng, n=10)
+    with pytest.raises(EstimationError, match="no datum"):
+        adjust_block(approx, obs, np.zeros(10, dtype=bool), BlockConfig())
