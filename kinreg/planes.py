@@ -196,7 +196,7 @@ def plane_covariance(
     heteroscedasticity-consistent sandwich ``N^-1 (A^T diag(r^2) A) N^-1 * N / (N - 3)`` with
     the design ``A = [s, t, -1]`` and ``N = A^T A = diag(sum s^2, sum t^2, N)``: range noise along
     the rays makes far, grazing points less noisy across the plane than near ones, and the plain
-    ``s^2 N^-1`` then misjudges the offset at the origin by 20-40 %. With equal noise it is
+    ``s^2 N^-1`` then misjudges the offset at the origin by up to 40 %. With equal noise it is
     ``s^2 N^-1`` (module docstring). The floors are added in quadrature to the tilt sigmas and to
     the sigma of the offset at the centroid; then the offset is carried to the scan origin.
     """
@@ -273,7 +273,8 @@ def _fit_patch(points: FloatArray, patch: _Patch, config: PlanesConfig) -> _Fit 
 
 
 def _hull_2d(st: FloatArray, candidates: NDArray[np.bool_]) -> tuple[FloatArray, float]:
-    """Convex hull (K, 2), counter-clockwise, and its area of 2D points; empty if degenerate.
+    """Convex hull (K, 2) and its area of 2D points; empty if degenerate. The vertices run
+    counter-clockwise in (s, t), i.e. seen from the side the normal points to (the scanner).
 
     Only the ``candidates`` can be hull vertices (:meth:`_Patch.hull_candidates`).
     """
