@@ -68,11 +68,13 @@ def _assemble(n_free: int, col_i: np.ndarray, col_j: np.ndarray, J_i: FloatArray
     ``col_i``/``col_j`` are the unknown-block indices of the observation's stations (-1: fixed
     or absent). Vectorised COO assembly; duplicates are summed by the sparse constructor.
     """
-    blocks_ii = np.einsum("kai,kab,kbj->kij", J_i, P, J_i)
-    blocks_jj = np.einsum("kai,kab,kbj->kij", J_j, P, J_j)
-    blocks_ij = np.einsum("kai,kab,kbj->kij", J_i, P, J_j)
-    g_i = np.einsum("kai,kab,kb->ki", J_i, P, e)
-    g_j = np.einsum("kai,kab,kb->ki", J_j, P, e)
+    JiT_P = np.transpose(J_i, (0, 2, 1)) @ P
+    JjT_P = np.transpose(J_j, (0, 2, 1)) @ P
+    blocks_ii = JiT_P @ J_i
+    blocks_jj = JjT_P @ J_j
+    blocks_ij = JiT_P @ J_j
+    g_i = (JiT_P @ e[:, :, None])[:, :, 0]
+    g_j = (JjT_P @ e[:, :, None])[:, :, 0]
     rows, cols, vals = [], [], []
     r6 = np.arange(6)
 
@@ -96,13 +98,6 @@ def _assemble(n_free: int, col_i: np.ndarray, col_j: np.ndarray, J_i: FloatArray
         ok = bi >= 0
         np.add.at(b, (6 * bi[ok, None] + r6[None, :]).ravel(), -g[ok].ravel())
     return N, b
-
-
-def _split_rank(info: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Eigenvectors (6, r) and eigenvalues (r,) of the determined part of an information matrix."""
-    w, V = np.linalg.eigh(0.5 * (info + info.T))
-    keep = w > 1e-9 * max(float(w[-1]), 1e-300)
-    return V[:, keep], w[keep]
 
 
 def _components(observations: list[RelativeObservation]) -> np.ndarray:
@@ -141,9 +136,10 @@ def adjust_block(
     weights = {k.value: 1.0 for k in ObservationKind}
     rejected_order: list[int] = []
     vce_rounds = 0
+    start = poses_initial
     progress.start("block adjustment", total=None, unit="iterations")
     while True:
-        poses, iterations, factor, N, free_index = _gauss_newton(poses_initial, observations, active, fixed,
+        poses, iterations, factor, N, free_index = _gauss_newton(start, observations, active, fixed,
                                                                    weights, config, progress)
         tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed, free_index,
                                                                   weights, factor, N, config)
@@ -153,17 +149,18 @@ def adjust_block(
             weights = new_weights
             vce_rounds += 1
             if changed:
+                start = poses
                 continue
-        worst = max((t for t in tests if not t.rejected and np.isfinite(t.statistic) and t.redundancy > 0.05),
-                    key=lambda t: t.statistic / stats.chi2.ppf(1.0 - config.alpha, t.dof), default=None)
-        if (config.data_snooping and worst is not None
-                and worst.statistic > stats.chi2.ppf(1.0 - config.alpha, worst.dof)
-                and len(rejected_order) < config.max_rejections):
-            log.info("block: rejecting observation %d (%s %d-%d, statistic %.1f)", worst.index, worst.kind.value,
-                     worst.i, worst.j, worst.statistic)
-            active[worst.index] = False
-            rejected_order.append(worst.index)
+        budget = config.max_rejections - len(rejected_order)
+        worst = _worst_outliers(tests, config.alpha, budget) if config.data_snooping and budget > 0 else []
+        if worst:
+            for t in worst:
+                log.info("block: rejecting observation %d (%s %d-%d, statistic %.1f)", t.index, t.kind.value,
+                         t.i, t.j, t.statistic)
+                active[t.index] = False
+                rejected_order.append(t.index)
             _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
+            start = poses  # warm start: the next round begins at the current solution
             continue
         break
     progress.finish()
@@ -252,48 +249,65 @@ def _gauss_newton(poses_initial, observations, active, fixed, weights, config, p
 
 
 def _test_observations(poses, observations, active, fixed, free_index, weights, factor, N, config):
-    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T."""
+    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
+    vectorised over observations (each restricted to the directions its information determines)."""
     idx, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
+    P = P * np.array([weights[k] for k in kinds])[:, None, None]
     e = _residuals(poses, obs_i, obs_j, Z, station)
     J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
     col_i = free_index[obs_i]
     col_j = np.where(station, -1, free_index[obs_j])
-    pairs = np.array([(a, b) for a, b in zip(col_i, col_j, strict=True) if a >= 0 and b >= 0], dtype=int)
-    pairs = pairs.reshape(-1, 2)
+    both = (col_i >= 0) & (col_j >= 0)
+    pairs = np.column_stack([col_i[both], col_j[both]]).astype(int).reshape(-1, 2)
     diag, off = selected_inverse(N, 6, pairs, factor=factor)
-    off_map = {(int(a), int(b)): k for k, (a, b) in enumerate(pairs)}
-    tests: list[ObservationTest] = []
-    omega = 0.0
-    redundancy = 0.0
-    for k in range(len(idx)):
-        w = weights[kinds[k]]
-        V, lam = _split_rank(P[k] * w)
-        if len(lam) == 0:
+
+    JQJ = np.zeros((len(idx), 6, 6))
+    for cols, J in ((col_i, J_i), (col_j, J_j)):
+        ok = cols >= 0
+        JQJ[ok] += J[ok] @ diag[cols[ok]] @ np.transpose(J[ok], (0, 2, 1))
+    cross = J_i[both] @ off @ np.transpose(J_j[both], (0, 2, 1))
+    JQJ[both] += cross + np.transpose(cross, (0, 2, 1))
+
+    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1))))
+    determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
+    w = np.where(determined, w, 1.0)
+    z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
+    VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
+    mask2 = determined[:, :, None] & determined[:, None, :]
+    Q_zz = np.where(mask2, np.eye(6) / w[:, :, None] - VJV, np.eye(6) * (~mask2))
+    dof = determined.sum(axis=1)
+    r_k = np.sum(np.where(determined, 1.0 - w * np.diagonal(VJV, axis1=1, axis2=2), 0.0), axis=1)
+    vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
+    statistic = np.einsum("ki,kij,kj->k", z, np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True), z)
+    # An uncontrolled observation (redundancy ~ 0) cannot be tested.
+    statistic = np.where(r_k > 1e-6, statistic, np.nan)
+    keep = dof > 0
+    tests = [
+        ObservationTest(int(idx[k]), ObservationKind(kinds[k]), int(obs_i[k]), int(observations[idx[k]].j),
+                        float(statistic[k]), int(dof[k]), float(r_k[k]), float(np.sqrt(statistic[k] / dof[k])),
+                        False, float(vtpv[k]))
+        for k in np.flatnonzero(keep)
+    ]
+    return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag
+
+
+def _worst_outliers(tests: list[ObservationTest], alpha: float, budget: int) -> list[ObservationTest]:
+    """Observations to reject in one round: those above the critical value that are the worst
+    among all such observations touching either of their stations (one per neighbourhood, so
+    that an outlier's effect on its neighbours does not reject them too)."""
+    critical = {dof: stats.chi2.ppf(1.0 - alpha, dof) for dof in {t.dof for t in tests}}
+    bad = [t for t in tests if np.isfinite(t.statistic) and t.redundancy > 0.05 and t.statistic > critical[t.dof]]
+    bad.sort(key=lambda t: t.statistic / critical[t.dof], reverse=True)
+    taken: set[int] = set()
+    chosen = []
+    for t in bad:
+        if t.i in taken or (t.j >= 0 and t.j in taken):
             continue
-        a, b = col_i[k], col_j[k]
-        JQJ = np.zeros((6, 6))
-        if a >= 0:
-            JQJ += J_i[k] @ diag[a] @ J_i[k].T
-        if b >= 0:
-            JQJ += J_j[k] @ diag[b] @ J_j[k].T
-        if a >= 0 and b >= 0:
-            cross = J_i[k] @ off[off_map[(a, b)]] @ J_j[k].T
-            JQJ += cross + cross.T
-        z = V.T @ e[k]
-        Q_zz = np.diag(1.0 / lam) - V.T @ JQJ @ V
-        r_k = float(len(lam) - np.trace(V.T @ JQJ @ V * lam[None, :]))
-        vtpv = float(z @ (lam * z))
-        omega += vtpv
-        redundancy += r_k
-        if r_k > 1e-6:
-            statistic = float(z @ np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True) @ z)
-        else:
-            statistic = float("nan")  # an uncontrolled observation cannot be tested
-        tests.append(ObservationTest(int(idx[k]), ObservationKind(kinds[k]), int(obs_i[k]), int(observations[idx[k]].j),
-                                     statistic, len(lam), r_k, float(np.sqrt(statistic / len(lam))), False,
-                                     vtpv))
-    Qxx_blocks = diag
-    return tests, omega, redundancy, Qxx_blocks
+        chosen.append(t)
+        taken.update((t.i, t.j))
+        if len(chosen) >= budget:
+            break
+    return chosen
 
 
 def _variance_components(tests: list[ObservationTest], weights: dict[str, float]) -> dict[str, float]:

@@ -33,6 +33,7 @@ from kinreg.progress import NullProgress, Progress
 from kinreg.report import (
     build_report,
     format_links_csv,
+    format_planes_csv,
     format_stations_csv,
     links_table,
     stations_table,
@@ -261,3 +262,50 @@ def process(
         n_rejected=len(report["adjustment"]["rejected_observations"]),
         timings_s=timings,
     )
+
+
+@dataclass(frozen=True)
+class LinkSummary:
+    n_scans: int
+    n_planes: int
+    n_candidate_pairs: int
+    n_links: int
+    by_status: dict[str, int]
+    seconds: dict[str, float]
+
+
+def link_to_folder(
+    trajectory_path: str | Path,
+    cloud_path: str | Path,
+    out_dir: str | Path,
+    config: KinregConfig,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+) -> LinkSummary:
+    """``kinreg link``: slice, detect planes, link the scans pairwise; write ``planes.csv`` (one row
+    per plane and scan) and ``links.csv`` into ``out_dir``. No block adjustment."""
+    progress = progress or NullProgress()
+    out = Path(out_dir)
+    check_writable_target(out / "links.csv", overwrite)
+    check_writable_target(out / "planes.csv", overwrite)
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    trajectory = read_input_trajectory(trajectory_path, config.input)
+    with open_cloud(cloud_path) as cloud:
+        sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
+                                      progress=progress)
+    seconds["slice"] = time.perf_counter() - t0
+    with sequence:
+        t0 = time.perf_counter()
+        stations, planes = detect_all_planes(sequence, config.planes, progress)
+        seconds["planes"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress)
+    seconds["link"] = time.perf_counter() - t0
+    n_candidates = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), config.matching))
+    write_text(out / "planes.csv", format_planes_csv(stations, planes), overwrite=overwrite)
+    write_text(out / "links.csv", format_links_csv(links_table(links, None)), overwrite=overwrite)
+    by_status: dict[str, int] = {}
+    for link in links:
+        by_status[link.status.value] = by_status.get(link.status.value, 0) + 1
+    return LinkSummary(len(stations), sum(len(p) for p in planes), n_candidates, len(links), by_status, seconds)

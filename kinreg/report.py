@@ -139,6 +139,25 @@ def format_links_csv(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
+PLANES_HEADER = ["station", "plane", "nx", "ny", "nz", "d_m", "cx", "cy", "cz", "area_m2", "n_points", "rms_mm",
+                 "s_tilt_u_mdeg", "s_tilt_v_mdeg", "s_d_mm"]
+
+
+def format_planes_csv(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]]) -> str:
+    """One row per detected plane, in its scan's frame (normal towards the scanner)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(PLANES_HEADER)
+    for station, found in zip(stations, planes, strict=True):
+        for p in found:
+            s = np.sqrt(np.maximum(np.diag(p.cov_uvd), 0.0))
+            writer.writerow([station.name, p.plane_id, *(f"{v:.9f}" for v in p.normal), f"{p.d_m:.6f}",
+                             *(f"{v:.6f}" for v in p.centroid_xyz), f"{p.area_m2:.3f}", p.n_points,
+                             f"{p.rms_m * 1e3:.3f}", f"{math.degrees(s[0]) * 1e3:.3f}",
+                             f"{math.degrees(s[1]) * 1e3:.3f}", f"{s[2] * 1e3:.4f}"])
+    return buf.getvalue()
+
+
 def before_after(initial: Pose, adjusted: Pose, use: np.ndarray) -> dict[str, Any]:
     """Rigid transformation of the initial station positions onto the adjusted ones and the
     residual gaps (METHOD.md step 10: the seed's 'gaps before vs after')."""

@@ -107,6 +107,29 @@ def slice_command(
     out.print(table)
 
 
+@app.command("link")
+def link_command(
+    trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],
+    cloud: Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")],
+    out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder (planes.csv, links.csv).")],
+    config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
+    window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing results.")] = False,
+) -> None:
+    """Slice, detect planes per scan and adjust every candidate pair (no block adjustment)."""
+    from kinreg.pipeline import link_to_folder
+
+    cfg = _config(config, {"slicing.window_s": window_s})
+    summary = link_to_folder(trajectory, cloud, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console))
+    table = Table(title=f"pairwise links in {out_dir}", show_header=False, title_justify="left")
+    table.add_row("scans", f"{summary.n_scans}")
+    table.add_row("planes", f"{summary.n_planes} ({summary.n_planes / max(summary.n_scans, 1):.1f} per scan)")
+    table.add_row("candidate pairs", f"{summary.n_candidate_pairs}")
+    table.add_row("links", f"{summary.n_links} " + ", ".join(f"{k} {v}" for k, v in summary.by_status.items()))
+    table.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.seconds.items()))
+    out.print(table)
+
+
 @app.command("process")
 def process_command(
     trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],

@@ -1,0 +1,123 @@
+"""Networking and block-adjustment speed.
+
+1. Links per second: slice the sample run, detect planes, then time the matching + pairwise
+   adjustment over all candidate pairs (``kinreg.network.link_stations``).
+2. ``kinreg.block.adjust_block`` end to end (Gauss-Newton, selected inverse, tests, variance
+   components, data snooping) on synthetic networks of 231 and 20,000 stations: a chain with
+   its 4 successors linked (some links rank 5) and loop closures every 50 stations.
+
+Usage: python benchmarks/bench_network.py [--stations 231 20000] [--out benchmarks/network.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def bench_links() -> dict:
+    from kinreg.config import KinregConfig
+    from kinreg.io.cloud import open_cloud
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.matching import candidate_pairs
+    from kinreg.network import link_stations
+    from kinreg.pipeline import detect_all_planes
+    from kinreg.progress import NullProgress
+    from kinreg.slicing import slice_quasi_static
+
+    cfg = KinregConfig()
+    data = REPO / "sample_data"
+    traj = read_trajectory(data / "run_trajectory.txt")
+    with open_cloud(data / "run_cloud.laz") as cloud:
+        seq = slice_quasi_static(traj, cloud, cfg.slicing)
+    with seq:
+        t0 = time.perf_counter()
+        stations, planes = detect_all_planes(seq, cfg.planes, NullProgress())
+        t_planes = time.perf_counter() - t0
+    n_pairs = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), cfg.matching))
+    t0 = time.perf_counter()
+    links = link_stations(stations, planes, cfg.matching, cfg.drift, cfg.pairwise)
+    t_links = time.perf_counter() - t0
+    return {"scans": len(stations), "points_per_scan": float(np.mean([s.n_points for s in stations])),
+            "planes_ms_per_scan": 1000 * t_planes / len(stations), "candidate_pairs": n_pairs,
+            "links": len(links), "link_s": t_links, "pairs_per_s": n_pairs / t_links,
+            "links_per_s": len(links) / t_links}
+
+
+def synthetic_network(n: int, seed: int = 0):
+    from kinreg.geometry import Pose, rotvec_to_quat
+    from kinreg.types import ObservationKind, RelativeObservation
+
+    rng = np.random.default_rng(seed)
+    s = np.arange(n)
+    # a serpentine walk: lanes of 50 stations, loop closures between neighbouring lanes
+    lane, pos = divmod(s, 50)
+    x = np.where(lane % 2 == 0, pos, 49 - pos) * 2.0
+    truth = Pose(rotvec_to_quat(np.column_stack([0.02 * rng.normal(size=n), 0.02 * rng.normal(size=n),
+                                                  np.pi * (lane % 2)])),
+                 np.column_stack([x, lane * 4.0, 1.5 + 0.05 * rng.normal(size=n)]))
+    cov_t = np.diag(np.square([2e-3] * 3 + [3e-4] * 3))
+    cov_p = np.diag(np.square([1e-3] * 3 + [1e-4] * 3))
+    obs = []
+
+    def add(i, j, cov, kind, rank=6):
+        T = truth[i].inverse().compose(truth[j])
+        info = np.linalg.inv(cov)
+        if rank == 5:
+            info[0, :] = 0
+            info[:, 0] = 0
+        obs.append(RelativeObservation(kind, i, j, T.compose(Pose.exp(rng.multivariate_normal(np.zeros(6), cov))),
+                                       info, rank))
+
+    for i in range(n - 1):
+        add(i, i + 1, cov_t, ObservationKind.TRAJECTORY)
+        for j in range(i + 1, min(n, i + 5)):
+            add(i, j, cov_p, ObservationKind.PLANES, 5 if (i + j) % 7 == 0 else 6)
+    for i in range(n):
+        if lane[i] % 2 == 0 and pos[i] % 10 == 0:
+            j = (lane[i] + 1) * 50 + (49 - pos[i])
+            if j < n:
+                add(i, int(j), cov_p, ObservationKind.PLANES)
+    initial = truth.compose(Pose.exp(np.column_stack([np.linspace(0, 0.05, n)[:, None] * [1, -1, 0.3],
+                                                      np.zeros((n, 3))])))
+    return truth, initial, obs
+
+
+def bench_block(n: int) -> dict:
+    from kinreg.block import adjust_block
+    from kinreg.config import BlockConfig
+    from kinreg.sparse import HAVE_CHOLMOD
+
+    truth, initial, obs = synthetic_network(n)
+    fixed = np.zeros(n, dtype=bool)
+    fixed[0] = True
+    t0 = time.perf_counter()
+    res = adjust_block(initial, obs, fixed, BlockConfig())
+    wall = time.perf_counter() - t0
+    err = truth.inverse().compose(res.poses).log()[1:]
+    sig = np.sqrt(np.diagonal(res.cov_xi, axis1=1, axis2=2))[1:]
+    return {"stations": n, "observations": len(obs), "seconds": wall, "iterations": res.iterations,
+            "sigma0": res.sigma0, "normalised_error_rms": float(np.sqrt(np.mean((err / sig) ** 2))),
+            "cholmod": HAVE_CHOLMOD}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--stations", type=int, nargs="+", default=[231, 20_000])
+    parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "network.json")
+    args = parser.parse_args()
+    result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "links": bench_links(),
+              "block": [bench_block(n) for n in args.stations]}
+    print(json.dumps(result, indent=1))
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
