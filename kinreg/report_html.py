@@ -473,8 +473,10 @@ def _plot_correction(report: dict[str, Any]) -> str:
     shift: list[float | None] = []
     for k in range(len(t)):
         xb, yb, xa, ya = (c[k] if k < len(c) else None for c in cols)
-        ok = None not in (xb, yb, xa, ya)
-        shift.append(math.hypot(xa - xb, ya - yb) * 1000.0 if ok else None)  # type: ignore[operator]
+        if xb is None or yb is None or xa is None or ya is None:
+            shift.append(None)
+        else:
+            shift.append(math.hypot(xa - xb, ya - yb) * 1000.0)
     st = _station_times(rows)
     gaps = _station_gaps(report, rows)
     if not _finite(shift) and not _finite(gaps):
@@ -523,9 +525,10 @@ def _plot_links(report: dict[str, Any]) -> str:
         i, j, status = p[0], p[1], str(p[2]) if len(p) > 2 else "ok"
         if not (isinstance(i, int) and isinstance(j, int) and 0 <= i < len(rows) and 0 <= j < len(rows)):
             continue
-        if None in (xs[i], ys[i], xs[j], ys[j]):
+        xi, yi, xj, yj = xs[i], ys[i], xs[j], ys[j]
+        if xi is None or yi is None or xj is None or yj is None:
             continue
-        x1, y1, x2, y2 = frame.px(xs[i]), frame.py(ys[i]), frame.px(xs[j]), frame.py(ys[j])  # type: ignore[arg-type]
+        x1, y1, x2, y2 = frame.px(xi), frame.py(yi), frame.px(xj), frame.py(yj)
         style = {"prior_only": ' stroke-dasharray="4 3"', "rejected": ' stroke-width="1.8"'}.get(status, "")
         tip = f"{rows[i].get('station', i)} \u2013 {rows[j].get('station', j)}: {status}"
         body.append(f'<line x1="{x1:.1f}" y1="{y1:.1f}" x2="{x2:.1f}" y2="{y2:.1f}" '
@@ -736,7 +739,8 @@ def _drift_and_links(report: dict[str, Any]) -> str:
     adj, links = _get(report, "adjustment", default={}), _get(report, "links", default={})
     rates = adj.get("drift_rates") or {}
     pos, rot = _numbers(rates.get("pos_mm_per_s") or []), _numbers(rates.get("rot_mdeg_per_s") or [])
-    source = {True: "estimated", False: "prior"}.get(rates.get("estimated"), DASH)
+    estimated = rates.get("estimated")
+    source = "estimated" if estimated is True else ("prior" if estimated is False else DASH)
     rows = [
         ("drift position per axis [mm/s]", " / ".join(_fmt(v, 2) for v in pos) or DASH),
         ("drift rotation per axis [mdeg/s]", " / ".join(_fmt(v, 1) for v in rot) or DASH),
