@@ -18,6 +18,7 @@ component per observation kind so that reported standard deviations follow the r
 from __future__ import annotations
 
 import logging
+
 import numpy as np
 import scipy.sparse as sp
 from scipy import stats

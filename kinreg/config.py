@@ -122,6 +122,31 @@ class BlockConfig:
     max_variance_rounds: int = 10
 
 
+class StaticDatum(enum.Enum):
+    """How registered static scans enter the network."""
+
+    FIXED = "fixed"  # their poses are the datum, held fixed
+    OBSERVED = "observed"  # their poses are observations with static_sigma_mm / static_sigma_mdeg
+
+
+@dataclasses.dataclass(frozen=True)
+class StaticConfig:
+    datum: StaticDatum = StaticDatum.FIXED
+    sigma_mm: float = 2.0  # standard deviation of each static position (datum = "observed")
+    sigma_mdeg: float = 5.0  # ... and of each static orientation angle
+    link_radius_m: float = 15.0  # quasi-static scans this close to a static scan are linked to it
+    prior_sigma_m: float = 0.2  # prior of a static-to-quasi-static pairwise adjustment (no trajectory ties them)
+    prior_sigma_deg: float = 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceConfig:
+    angle_gate_deg: float = 5.0  # a detected plane is tied to a reference plane within this angle ...
+    distance_gate_m: float = 0.3  # ... and this distance (the trajectory frame is roughly the building's)
+    ambiguity_ratio: float = 3.0  # the second-best reference must be this much farther, else no tie
+    min_extent_m: float = 1.0  # the normal "wobbles" by the construction accuracy over the patch size, at least this
+
+
 @dataclasses.dataclass(frozen=True)
 class KinregConfig:
     input: InputConfig = dataclasses.field(default_factory=InputConfig)
@@ -131,6 +156,8 @@ class KinregConfig:
     matching: MatchingConfig = dataclasses.field(default_factory=MatchingConfig)
     pairwise: PairwiseConfig = dataclasses.field(default_factory=PairwiseConfig)
     block: BlockConfig = dataclasses.field(default_factory=BlockConfig)
+    static: StaticConfig = dataclasses.field(default_factory=StaticConfig)
+    reference: ReferenceConfig = dataclasses.field(default_factory=ReferenceConfig)
 
 
 C = TypeVar("C")

@@ -11,10 +11,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
+from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.geometry import Pose, quat_to_rotvec
 from kinreg.matching import candidate_pairs, match_planes
-from kinreg.pairwise import adjust_pair, drift_sigmas
+from kinreg.pairwise import adjust_pair
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, RelativeObservation, ScanKind
 
@@ -36,6 +36,21 @@ class Station:
     tau_s: float = float("nan")  # effective time offset of the scan's planes from t_s (window bias)
 
 
+def station_pairs(stations: Sequence[Station], matching: MatchingConfig,
+                  static: StaticConfig | None = None) -> list[tuple[int, int]]:
+    """Candidate pairs: sequence neighbours and nearby stations among the quasi-static stations,
+    and every station within ``static.link_radius_m`` of a static one."""
+    positions = np.array([s.T_obj_scan.t_xyz for s in stations])
+    quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])
+    qs = np.flatnonzero(quasi)
+    pairs = {(int(qs[a]), int(qs[b])) for a, b in candidate_pairs(positions[qs], matching)}
+    if static is not None and (~quasi).any():
+        for k in np.flatnonzero(~quasi):
+            near = np.flatnonzero(np.linalg.norm(positions - positions[k], axis=1) <= static.link_radius_m)
+            pairs |= {(int(min(k, j)), int(max(k, j))) for j in near if j != k}
+    return sorted(pairs)
+
+
 def link_stations(
     stations: Sequence[Station],
     planes: Sequence[tuple[Plane, ...]],
@@ -43,15 +58,17 @@ def link_stations(
     drift: DriftConfig,
     pairwise: PairwiseConfig,
     progress: Progress | None = None,
+    static: StaticConfig | None = None,
 ) -> list[Link]:
-    """Pairwise links over all candidate pairs (sequence neighbours and nearby stations).
+    """Pairwise links over all candidate pairs (see :func:`station_pairs`).
 
     ``planes[k]`` are the planes of ``stations[k]``. Pairs with fewer than
-    ``matching.min_matches`` plane matches are not linked. Returns the links in pair order.
+    ``matching.min_matches`` plane matches are not linked. A pair with a static station has no
+    trajectory between them: its prior comes from ``static.prior_sigma_*``. Returns the links in
+    pair order.
     """
     progress = progress or NullProgress()
-    positions = np.array([s.T_obj_scan.t_xyz for s in stations])
-    pairs = candidate_pairs(positions, matching)
+    pairs = station_pairs(stations, matching, static)
     links: list[Link] = []
     progress.start("link", total=len(pairs), unit="pairs")
     for i, j in pairs:
@@ -59,7 +76,11 @@ def link_stations(
         T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
         matches = match_planes(planes[i], planes[j], T_prior, matching)
         if len(matches) >= matching.min_matches:
-            links.append(adjust_pair(i, j, planes[i], planes[j], T_prior, _dt(si, sj), matches, drift, pairwise))
+            sigma = None
+            if static is not None and ScanKind.STATIC in (si.kind, sj.kind):
+                sigma = np.array([static.prior_sigma_m] * 3 + [np.radians(static.prior_sigma_deg)] * 3)
+            links.append(adjust_pair(i, j, planes[i], planes[j], T_prior, _dt(si, sj), matches, drift, pairwise,
+                                     sigma_prior=sigma))
         progress.advance(1)
     progress.finish()
     n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)

@@ -153,14 +153,17 @@ def adjust_pair(
     matches: tuple[PlaneMatch, ...],
     drift: DriftConfig,
     config: PairwiseConfig,
+    sigma_prior: FloatArray | None = None,
 ) -> Link:
     """Adjust one pair. ``T_prior`` is the trajectory's ``T_i_j`` (maps scan j into scan i),
-    ``dt_s`` the time between the two scans (sets the prior's standard deviations).
+    ``dt_s`` the time between the two scans (sets the prior's standard deviations, unless
+    ``sigma_prior`` (6,) gives them, e.g. for a static scan that no trajectory ties).
 
     Returns a :class:`Link`; with no usable match its status is ``PRIOR_ONLY`` and it carries
     the prior alone (zero plane information).
     """
-    sigma_prior = drift_sigmas(abs(dt_s), drift)
+    if sigma_prior is None:
+        sigma_prior = drift_sigmas(abs(dt_s), drift)
     P_prior = np.diag(1.0 / sigma_prior**2)
     by_id_i = {p.plane_id: p for p in planes_i}
     by_id_j = {p.plane_id: p for p in planes_j}

@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from kinreg.block import adjust_block
-from kinreg.config import InputConfig, KinregConfig, PlanesConfig, format_toml
+from kinreg.config import InputConfig, KinregConfig, PlanesConfig, StaticConfig, StaticDatum, format_toml
 from kinreg.correction import DriftCorrection, write_corrected_las
 from kinreg.errors import ConfigError, OutputError
 from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.cloud import open_cloud
+from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
 from kinreg.matching import candidate_pairs
 from kinreg.network import (
@@ -26,10 +27,12 @@ from kinreg.network import (
     estimate_drift_rates,
     link_stations,
     plane_time_offsets,
+    station_pairs,
     with_window_bias,
 )
 from kinreg.planes import detect_planes
 from kinreg.progress import NullProgress, Progress
+from kinreg.reference import Tie, as_built, associate, tie_observations
 from kinreg.report import (
     build_report,
     format_links_csv,
@@ -42,7 +45,16 @@ from kinreg.report import (
 )
 from kinreg.report_html import render_html
 from kinreg.slicing import QuasiStaticSequence, SlicingSummary, slice_quasi_static
-from kinreg.types import Plane, Scan, Trajectory
+from kinreg.types import (
+    BlockResult,
+    Link,
+    ObservationKind,
+    Plane,
+    RelativeObservation,
+    Scan,
+    ScanKind,
+    Trajectory,
+)
 
 
 def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
@@ -143,6 +155,84 @@ def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig,
     return stations, planes
 
 
+def detect_static_planes(path: Path, first_id: int, config: PlanesConfig,
+                         progress: Progress) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """Planes of every static scan of a registered E57 (poses in the object frame required)."""
+    from kinreg.io.e57 import iter_e57_scans, list_e57_scans
+
+    headers = list_e57_scans(path)
+    stations: list[Station] = []
+    planes: list[tuple[Plane, ...]] = []
+    progress.start("static planes", total=len(headers), unit="scans")
+    for k, scan in enumerate(iter_e57_scans(path, require_pose=True)):
+        scan = replace(scan, scan_id=first_id + k)
+        found = tuple(replace(p, scan_id=scan.scan_id) for p in detect_planes(scan, config))
+        nan = float("nan")
+        stations.append(Station(scan.scan_id, scan.name or f"static_{k:03d}", ScanKind.STATIC, nan, nan, nan,
+                                scan.T_obj_scan, len(scan)))
+        planes.append(found)
+        progress.advance(1)
+    progress.finish()
+    return stations, planes
+
+
+@dataclass(frozen=True, eq=False)
+class AdjustedNetwork:
+    result: BlockResult
+    rates: DriftRates
+    datum: str
+    ties: tuple[Tie, ...]
+
+
+def adjust_network(
+    stations: list[Station],
+    planes: list[tuple[Plane, ...]],
+    links: list[Link],
+    references: ReferencePlanes | None,
+    static: StaticConfig | None,
+    config: KinregConfig,
+    progress: Progress,
+) -> AdjustedNetwork:
+    """The block adjustment with its datum: static scans (fixed or observed), reference planes
+    (tie planes), or else the first station. The first adjustment also measures the drift; where
+    it is faster than the prior, the network is adjusted again with the measured rates so that
+    stretches carried by the trajectory alone get honest sigmas."""
+    poses_initial = Pose.stack([s.T_obj_scan for s in stations])
+    is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
+    fixed = np.zeros(len(stations), dtype=bool)
+    datum_obs: list[RelativeObservation] = []
+    ties: list[Tie] = []
+    datum = []
+    if static is not None and is_static.any():
+        if static.datum is StaticDatum.FIXED:
+            fixed |= is_static
+            datum.append("static scans fixed")
+        else:
+            sigma = np.array([static.sigma_mm / 1000.0] * 3 + [np.radians(static.sigma_mdeg / 1000.0)] * 3)
+            datum_obs += [RelativeObservation(ObservationKind.STATION, k, -1, stations[k].T_obj_scan,
+                                              np.diag(1.0 / sigma**2), 6) for k in np.flatnonzero(is_static)]
+            datum.append("static scans observed")
+    if references is not None:
+        ties = associate([s.name for s in stations], poses_initial, planes, references, config.reference)
+        if not ties:
+            raise ConfigError("no detected plane could be tied to a reference plane (is the trajectory in the "
+                              "building's frame? give [[link]] entries otherwise)", references.source)
+        datum_obs += tie_observations(ties, poses_initial, planes, references, config.reference)
+        datum.append(f"reference planes ({len(ties)} tie planes)")
+    if not datum:
+        fixed[0] = True
+        datum.append("first station")
+    prior_rates = DriftRates.from_config(config.drift)
+    result = adjust_block(poses_initial, block_observations(stations, links, prior_rates) + datum_obs, fixed,
+                          config.block, progress)
+    rates = estimate_drift_rates(stations, result, prior_rates)
+    if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
+            rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
+        result = adjust_block(poses_initial, block_observations(stations, links, rates) + datum_obs, fixed,
+                              config.block, progress)
+    return AdjustedNetwork(with_window_bias(result, stations, rates), rates, "; ".join(datum), tuple(ties))
+
+
 def _adjusted_scans(sequence: QuasiStaticSequence, poses: Pose) -> Iterator[Scan]:
     for scan in sequence.iter_scans():
         yield replace(scan, T_obj_scan=poses[scan.scan_id])
@@ -180,9 +270,8 @@ def process(
         timings[stage] = now - clock
         clock = now
 
-    if inputs.static is not None or inputs.reference is not None:
-        raise ConfigError("static scans and reference planes are not supported yet (planned)")
     prepare_output_folder(out, overwrite)
+    references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
     trajectory = read_input_trajectory(inputs.trajectory, config.input)
     with open_cloud(inputs.cloud) as cloud:
         n_points_input = cloud.info.n_points
@@ -191,27 +280,22 @@ def process(
     lap("slice")
     with sequence:
         stations, planes = detect_all_planes(sequence, config.planes, progress)
+        if inputs.static is not None:
+            static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes, progress)
+            stations, planes = stations + static_stations, planes + static_planes
         lap("planes")
-        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress)
-        n_candidates = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), config.matching))
+        static = config.static if inputs.static is not None else None
+        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static)
+        n_candidates = len(station_pairs(stations, config.matching, static))
         lap("link")
-        poses_initial = Pose.stack([s.T_obj_scan for s in stations])
-        fixed = np.zeros(len(stations), dtype=bool)
-        fixed[0] = True  # datum: the first station
-        prior_rates = DriftRates.from_config(config.drift)
-        result = adjust_block(poses_initial, block_observations(stations, links, prior_rates), fixed,
-                              config.block, progress)
-        # The first adjustment measures the drift; where it is faster than the prior, adjust again
-        # with the measured rates so that trajectory-only stretches get honest sigmas.
-        rates = estimate_drift_rates(stations, result, prior_rates)
-        if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
-                rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
-            result = adjust_block(poses_initial, block_observations(stations, links, rates), fixed,
-                                  config.block, progress)
-        result = with_window_bias(result, stations, rates)
+        network = adjust_network(stations, planes, links, references, static, config, progress)
+        result, rates = network.result, network.rates
         lap("block")
+        quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])
+        poses_initial = result.poses_initial
         station_times = np.array([s.t_s for s in stations])
-        correction = DriftCorrection.from_stations(station_times, poses_initial, result.poses, trajectory)
+        correction = DriftCorrection.from_stations(station_times[quasi], poses_initial[quasi], result.poses[quasi],
+                                                   trajectory)
         corrected_trajectory = correction.apply_to_trajectory(trajectory)
         write_trajectory_geoslam(out / "trajectory_corrected.txt", corrected_trajectory, overwrite=True)
         if inputs.cloud.suffix.lower() in (".las", ".laz"):
@@ -237,9 +321,14 @@ def process(
                  "n_points_outside_trajectory": slicing_summary.n_points_outside_trajectory,
                  "skipped_windows": [dataclasses.asdict(w) for w in slicing_summary.skipped]},
         correction_mm=shift * 1000.0, correction_mdeg=np.degrees(rot) * 1000.0,
-        datum="first_station", alpha=config.block.alpha, timings_s=timings, drift_rates=rates,
+        datum=network.datum, alpha=config.block.alpha, timings_s=timings, drift_rates=rates,
         trajectory_plot=_trajectory_plot(trajectory, corrected_trajectory),
     )
+    report["inputs"]["static"] = None if inputs.static is None else str(inputs.static)
+    report["inputs"]["reference"] = None if inputs.reference is None else str(inputs.reference)
+    if references is not None:
+        report["reference"] = {"accuracy_m": references.accuracy_m, "n_ties": len(network.ties),
+                               "planes": as_built(network.ties, result.poses, planes, references)}
     rows = stations_table(stations, result, planes, links)
     write_text(out / "stations.csv", format_stations_csv(rows))
     write_text(out / "links.csv", format_links_csv(links_table(links, result)))

@@ -24,8 +24,7 @@ from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, 
 
 REPORT_SCHEMA_VERSION = 1
 
-STATIONS_HEADER = ("station,t,t_start,t_end,x,y,z,qw,qx,qy,qz,sx_mm,sy_mm,sz_mm,s3d_mm,n_points,n_planes,n_links"
-                   .split(","))
+STATIONS_HEADER = (["station", "t", "t_start", "t_end", "x", "y", "z", "qw", "qx", "qy", "qz", "sx_mm", "sy_mm", "sz_mm", "s3d_mm", "n_points", "n_planes", "n_links"])
 LINKS_HEADER = ["scan_i", "scan_j", "status", "dt_s", "n_matches", "n_rejected_matches", "n_directions", "rank",
                 "tx", "ty", "tz", "qw", "qx", "qy", "qz", "stx_mm", "sty_mm", "stz_mm", "srx_mdeg", "sry_mdeg",
                 "srz_mdeg", "sigma0", "redundancy", "global_test", "max_normalised_residual", "block_statistic",
