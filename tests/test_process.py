@@ -6,12 +6,12 @@ import json
 import laspy
 import numpy as np
 import pytest
+from kinreg_cli.main import main
 
 from kinreg.io.e57 import list_e57_scans
 from kinreg.io.trajectory import read_trajectory
 from kinreg.report import STATIONS_HEADER, rigid_fit
 from kinreg.simulation import SimulationConfig, simulate_run, write_run
-from kinreg_cli.main import main
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +94,53 @@ def test_existing_results_are_not_overwritten(processed, capsys):
               "-c", str(processed / "data" / "run_cloud.laz"), "-o", str(processed / "out")])
     assert info.value.code == 1
     assert "already holds kinreg results; use --overwrite" in capsys.readouterr().err
+
+
+def run_process(root, name, *extra):
+    with pytest.raises(SystemExit) as info:
+        main(["process", "-t", str(root / "data" / "run_trajectory.txt"), "-c", str(root / "data" / "run_cloud.laz"),
+              "-o", str(root / name), *map(str, extra)])
+    return info.value.code
+
+
+def absolute_errors_mm(root, name):
+    with open(root / name / "stations.csv") as f:
+        rows = [r for r in csv.DictReader(f) if r["t"]]
+    t = np.array([float(r["t"]) for r in rows])
+    adjusted = np.array([[float(r[k]) for k in "xyz"] for r in rows])
+    truth = read_trajectory(root / "data" / "truth_trajectory.txt").pose_at(t).t_xyz
+    return np.linalg.norm(adjusted - truth, axis=1) * 1000.0
+
+
+def test_static_scans_fixed_as_datum(processed):
+    assert run_process(processed, "static", "--static", processed / "data" / "static.e57") == 0
+    with open(processed / "static" / "stations.csv") as f:
+        rows = list(csv.DictReader(f))
+    static = [r for r in rows if not r["t"]]
+    assert len(static) == 3 and all(r["s3d_mm"] == "0.000" for r in static)
+    truth = json.loads((processed / "data" / "static_truth.json").read_text())
+    for row, scan in zip(static, truth["scans"], strict=True):
+        np.testing.assert_allclose([float(row[k]) for k in "xyz"], scan["t_xyz"], atol=1e-6)  # held fixed
+    assert np.sqrt(np.mean(absolute_errors_mm(processed, "static") ** 2)) < 3.0
+    report = json.loads((processed / "static" / "report.json").read_text())
+    assert report["adjustment"]["datum"] == "static scans fixed"
+
+
+def test_reference_planes_as_datum_and_as_built(processed):
+    assert run_process(processed, "reference", "--reference", processed / "data" / "reference.toml") == 0
+    report = json.loads((processed / "reference" / "report.json").read_text())
+    assert report["adjustment"]["datum"].startswith("reference planes")
+    planes = {p["name"]: p for p in report["reference"]["planes"]}
+    assert all(p["n_ties"] > 0 for p in planes.values())
+    # the simulated building is exactly as planned: tie corrections are at the millimetre level
+    assert all(abs(p["offset_mean_mm"]) < 2.0 for p in planes.values())
+    assert np.sqrt(np.mean(absolute_errors_mm(processed, "reference") ** 2)) < 5.0
+
+
+def test_reference_file_with_errors_is_one_line(processed, capsys):
+    bad = processed / "bad_reference.toml"
+    bad.write_text('plane_construction_accuracy_m = 0.05\n[[plane]]\nname = "w"\naxis = "q"\noffset_m = 0\nnormal_sign = 1\n')
+    assert run_process(processed, "bad_reference", "--reference", bad) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"kinreg: error: {bad}") and "axis" in err and len(err.splitlines()) == 1
+    assert not (processed / "bad_reference" / "stations.csv").exists()
