@@ -45,6 +45,8 @@ from kinreg.geometry import (
     quat_to_rotvec,
     rotvec_to_quat,
 )
+from kinreg.io.atomic import atomic_path
+from kinreg.io.trajectory import write_trajectory_geoslam as _write_geoslam
 from kinreg.types import Scan, ScanKind, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -1178,33 +1180,9 @@ def make_static_scans(scene: Scene, config: StaticConfig, rng: np.random.Generat
 # =========================================================================== writers
 
 
-class _AtomicPath:
-    """Write to a temporary name in the same folder, rename over the target on success."""
-
-    def __init__(self, path: str | os.PathLike[str]) -> None:
-        self.path = Path(path)
-        # keep the suffix: some writers pick the format from it
-        self.tmp = self.path.with_name(f".{self.path.stem}.tmp{os.getpid()}{self.path.suffix}")
-
-    def __enter__(self) -> Path:
-        return self.tmp
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        if exc_type is None:
-            os.replace(self.tmp, self.path)
-        else:
-            self.tmp.unlink(missing_ok=True)
-
-
 def write_trajectory_geoslam(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
-    """GeoSLAM text: header ``%time x y z q0 q1 q2 q3 userfields``, rows ``t x y z qw qx qy qz``.
-
-    Times ``%.6f`` s, positions ``%.6f`` m, quaternions ``%.9f`` (scalar first).
-    """
-    data = np.column_stack([trajectory.stamps_s, trajectory.poses.t_xyz, trajectory.poses.quat_wxyz])
-    with _AtomicPath(path) as tmp:
-        np.savetxt(tmp, data, fmt=["%.6f"] * 4 + ["%.9f"] * 4, delimiter=" ",
-                   header="%time x y z q0 q1 q2 q3 userfields", comments="")
+    """GeoSLAM text (kinreg's writer), replacing an existing file."""
+    _write_geoslam(path, trajectory, overwrite=True)
 
 
 def _las_header(run: SimulatedRun) -> Any:
@@ -1234,7 +1212,7 @@ def write_cloud_laz(path: str | os.PathLike[str], run: SimulatedRun,
     header = _las_header(run)
     n_total = 0
     compress = str(path).lower().endswith(".laz")
-    with _AtomicPath(path) as tmp, laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
+    with atomic_path(path, overwrite=True) as tmp, laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
         for blk in blocks if blocks is not None else run.iter_cloud_blocks():
             if len(blk) == 0:
                 continue
@@ -1254,7 +1232,7 @@ def write_static_e57(path: str | os.PathLike[str], scans: Sequence[Scan]) -> Non
     the pose ``T_obj_scan`` in the entry's pose (quaternion w, x, y, z; float64 translation)."""
     import pye57
 
-    with _AtomicPath(path) as tmp:
+    with atomic_path(path, overwrite=True) as tmp:
         e57 = pye57.E57(str(tmp), mode="w")
         try:
             for s in scans:
@@ -1399,5 +1377,5 @@ def write_run(run: SimulatedRun, out_dir: str | os.PathLike[str], progress: Any 
 
 
 def _write_text(path: Path, text: str) -> None:
-    with _AtomicPath(path) as tmp:
+    with atomic_path(path, overwrite=True) as tmp:
         tmp.write_text(text, encoding="utf-8")

@@ -31,8 +31,9 @@ def check_writable_target(path: Path, overwrite: bool) -> None:
 
 
 def temporary_name(path: Path) -> Path:
-    """The hidden temporary name used while ``path`` is being written."""
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    """The hidden temporary name used while ``path`` is being written; it keeps the suffix,
+    from which some writers pick the format."""
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
 
 
 @contextmanager

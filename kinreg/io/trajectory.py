@@ -158,7 +158,12 @@ def _read_csv(p: Path, columns: Mapping[str, str | int] | None) -> tuple[FloatAr
     except csv.Error:
         delimiter = ","
     reader = csv.reader(io.StringIO(text), delimiter=delimiter, skipinitialspace=True)
-    all_rows = [(i, [c.strip() for c in r]) for i, r in enumerate(reader, start=1) if any(c.strip() for c in r)]
+    try:
+        all_rows = [(i, [c.strip() for c in r]) for i, r in enumerate(reader, start=1) if any(c.strip() for c in r)]
+    except csv.Error as e:
+        raise TrajectoryError(f"not a readable CSV file: {e}", p) from None
+    if not all_rows:
+        raise TrajectoryError("file has no values", p)
     header_line, header = all_rows[0]
     has_header = not all(_is_float(c) for c in header if c)
     data_rows = all_rows[1:] if has_header else all_rows
@@ -230,15 +235,20 @@ def _read_ply(p: Path) -> tuple[FloatArray, np.ndarray]:
                 break
             if words[0] == "format" and len(words) >= 2:
                 fmt = words[1]
-            elif words[0] == "element" and len(words) == 3:
+            elif words[0] == "element":
+                if len(words) != 3 or not words[2].isdigit():
+                    raise TrajectoryError(f"PLY header line {n_header_lines}: expected 'element <name> <count>'", p)
                 elements.append((words[1], int(words[2]), []))
             elif words[0] == "property" and elements:
-                if words[1] == "list":
+                if len(words) >= 5 and words[1] == "list":
                     elements[-1][2].append((words[-1], "list"))
-                elif words[1] in _PLY_TYPES:
+                elif len(words) == 3 and words[1] in _PLY_TYPES:
                     elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
-                else:
+                elif len(words) == 3 or (len(words) >= 2 and words[1] == "list"):
                     raise TrajectoryError(f"PLY property type '{words[1]}' is not supported", p)
+                else:
+                    raise TrajectoryError(
+                        f"PLY header line {n_header_lines}: expected 'property <type> <name>'", p)
         if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
             raise TrajectoryError(f"PLY format '{fmt}' is not supported", p)
         if not elements or elements[0][0] != "vertex":
@@ -264,7 +274,9 @@ def _read_ply(p: Path) -> tuple[FloatArray, np.ndarray]:
             return _parse_rows(rows, 8, p)
         endian = "<" if fmt == "binary_little_endian" else ">"
         dtype = np.dtype([(f"p{i}", endian + t) for i, (_, t) in enumerate(props)])
-        data = f.read(n * dtype.itemsize)
+        # Never ask for more than the file holds: a damaged count must not allocate terabytes.
+        remaining = p.stat().st_size - f.tell()
+        data = f.read(min(n * dtype.itemsize, max(remaining, 0)))
         if len(data) < n * dtype.itemsize:
             raise TrajectoryError(f"PLY file ends after {len(data) // dtype.itemsize} of {n} vertices", p)
         rec = np.frombuffer(data, dtype=dtype, count=n)
@@ -320,7 +332,7 @@ def format_geoslam(traj: Trajectory) -> str:
     """The GeoSLAM text of a trajectory: header plus ``t x y z q0 q1 q2 q3`` rows."""
     table = np.column_stack([traj.stamps_s, traj.poses.t_xyz, traj.poses.quat_wxyz])
     buf = io.StringIO()
-    buf.write("%time x y z q0 q1 q2 q3\n")
+    buf.write("%time x y z q0 q1 q2 q3 userfields\n")
     np.savetxt(buf, table, fmt=["%.6f"] + ["%.6f"] * 3 + ["%.9f"] * 4)
     return buf.getvalue()
 
