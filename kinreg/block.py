@@ -223,7 +223,7 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray):
 
 
 def _gauss_newton(poses_initial, observations, active, fixed, weights, config, progress):
-    idx, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
+    _, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
     P = P * np.array([weights[k] for k in kinds])[:, None, None]
     free_index = -np.ones(len(poses_initial), dtype=int)
     free_index[~fixed] = np.arange(np.count_nonzero(~fixed))
@@ -232,7 +232,8 @@ def _gauss_newton(poses_initial, observations, active, fixed, weights, config, p
     col_j = np.where(station, -1, free_index[obs_j])
     poses = poses_initial
     factor = N = None
-    for iteration in range(1, config.max_iterations + 1):
+    iterations = 0
+    for iterations in range(1, config.max_iterations + 1):  # noqa: B007  (the count is returned)
         e = _residuals(poses, obs_i, obs_j, Z, station)
         J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
         N, b = _assemble(n_free, col_i, col_j, J_i, J_j, P, e)
@@ -246,7 +247,7 @@ def _gauss_newton(poses_initial, observations, active, fixed, weights, config, p
             break
     else:
         log.warning("block adjustment: no convergence after %d iterations", config.max_iterations)
-    return poses, iteration, factor, N, free_index
+    return poses, iterations, factor, N, free_index
 
 
 def _test_observations(poses, observations, active, fixed, free_index, weights, factor, N, config):

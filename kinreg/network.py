@@ -5,6 +5,7 @@ A *station* is a scan with a pose ``T_obj_scan`` (from the trajectory for quasi-
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -206,7 +207,7 @@ def block_observations(
         if link.status is LinkStatus.OK and link.rank > 0
     ]
     sequence = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
-    for a, b in zip(sequence[:-1], sequence[1:], strict=True):
+    for a, b in itertools.pairwise(sequence):
         sa, sb = stations[a], stations[b]
         Z = sa.T_obj_scan.inverse().compose(sb.T_obj_scan)
         cov = (rates.covariance(_dt(sa, sb), sa.T_obj_scan) + window_bias_covariance(sa, sa.T_obj_scan, rates)

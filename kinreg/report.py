@@ -17,14 +17,16 @@ from typing import Any
 import numpy as np
 
 import kinreg
-from kinreg.geometry import FloatArray, Pose, quat_to_rotvec
+from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
 from kinreg.io.atomic import atomic_path
 from kinreg.network import Station
 from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, ScanKind
 
 REPORT_SCHEMA_VERSION = 1
 
-STATIONS_HEADER = (["station", "t", "t_start", "t_end", "x", "y", "z", "qw", "qx", "qy", "qz", "sx_mm", "sy_mm", "sz_mm", "s3d_mm", "n_points", "n_planes", "n_links"])
+# METHOD.md section 6: fixed names and order, other tools read them.
+STATIONS_HEADER = ["station", "t", "t_start", "t_end", "x", "y", "z", "qw", "qx", "qy", "qz",
+                   "sx_mm", "sy_mm", "sz_mm", "s3d_mm", "n_points", "n_planes", "n_links"]
 LINKS_HEADER = ["scan_i", "scan_j", "status", "dt_s", "n_matches", "n_rejected_matches", "n_directions", "rank",
                 "tx", "ty", "tz", "qw", "qx", "qy", "qz", "stx_mm", "sty_mm", "stz_mm", "srx_mdeg", "sry_mdeg",
                 "srz_mdeg", "sigma0", "redundancy", "global_test", "max_normalised_residual", "block_statistic",
@@ -167,7 +169,7 @@ def before_after(initial: Pose, adjusted: Pose, use: np.ndarray) -> dict[str, An
     gaps = np.linalg.norm(dst - (src @ R.T + t), axis=1) * 1000.0
     return {
         "type": "rigid",
-        "rotation_mdeg": float(np.degrees(np.linalg.norm(quat_to_rotvec(Pose.from_rotation_translation(R, t).quat_wxyz))) * 1e3),
+        "rotation_mdeg": float(np.degrees(np.linalg.norm(quat_to_rotvec(matrix_to_quat(R)))) * 1e3),
         "translation_mm": (t * 1000.0).tolist(),
         "gaps_mm": _stats(gaps),
         "gap_per_station_mm": gaps.tolist(),
