@@ -34,8 +34,8 @@ sys.path.insert(0, str(REPO / "tests"))
 def generate(folder: Path, n_points: int, rate_pts_s: float = 150_000.0) -> tuple[Path, Path]:
     """A cheap run: points scattered around a walking platform, written in 2 M-point chunks."""
     import laspy
-
     from conftest import make_trajectory
+
     from kinreg.io.trajectory import write_trajectory_geoslam
 
     duration = n_points / rate_pts_s

@@ -139,7 +139,7 @@ def evaluate(name: str, workdir: Path) -> dict:
     rms_input = point_to_plane_rms(run, drifted())
     return {
         "scenario": name,
-        "stations": int(len(adj)),
+        "stations": len(adj),
         "links": summary.n_links,
         "sigma0": summary.sigma0,
         "global_test_passed": summary.global_test_passed,

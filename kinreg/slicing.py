@@ -12,6 +12,7 @@ handed out one at a time.
 
 from __future__ import annotations
 
+import errno
 import logging
 import shutil
 import tempfile
@@ -24,7 +25,7 @@ from typing import BinaryIO
 import numpy as np
 
 from kinreg.config import SlicingConfig, WindowMode
-from kinreg.errors import InputError
+from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader
 from kinreg.progress import NullProgress, Progress
@@ -178,7 +179,8 @@ class QuasiStaticSequence:
         """Scan ``i``: its points in its own frame (float64), times, intensities."""
         w = self.windows[i]
         a, b = self._unit_ranges[i]
-        parts = [np.fromfile(self._store.path(u), dtype=SPILL_RECORD) for u in range(a, b) if self._store.counts[u]]
+        parts = [np.fromfile(self._store.path(u), dtype=SPILL_RECORD)
+                 for u in range(a, b) if self._store.counts[u]]
         rec = np.concatenate(parts) if len(parts) != 1 else parts[0]
         xyz_obj = np.column_stack([rec["x"], rec["y"], rec["z"]])
         return Scan(
@@ -229,7 +231,12 @@ def slice_quasi_static(
     edges = unit_edges(trajectory, config)
     n_units = len(edges) - 1
     base = workdir or config.temp_dir or None
-    folder = Path(tempfile.mkdtemp(prefix="kinreg-slices-", dir=base))
+    try:
+        folder = Path(tempfile.mkdtemp(prefix="kinreg-slices-", dir=base))
+    except OSError as e:
+        where = base or tempfile.gettempdir()
+        raise ConfigError(f"[slicing] temp_dir: cannot create the spill folder: {e.strerror or e}",
+                          where) from None
     store = _SpillWriter(folder, n_units)
     n_read = n_outside = 0
     try:
@@ -248,7 +255,10 @@ def slice_quasi_static(
                 chunk = CloudChunk(chunk.xyz[keep], t[keep],
                                    None if chunk.intensity is None else chunk.intensity[keep])
                 unit, t = unit[keep], t[keep]
-            _spill_chunk(store, chunk, t, unit)
+            try:
+                _spill_chunk(store, chunk, t, unit)
+            except OSError as e:
+                raise _spill_error(e, folder.parent, n_read) from None
             progress.advance(len(inside))
         progress.finish()
     except BaseException:
@@ -300,6 +310,15 @@ def slice_quasi_static(
             f"no window has at least {config.min_points} points ({len(ranges)} windows); "
             "use longer windows or a smaller min_points", cloud.path)
     return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=True)
+
+
+def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:
+    """The one-line error for a failed write to the temporary spill folder."""
+    if e.errno == errno.ENOSPC:
+        return OutputError(
+            f"disk full while spilling points to the temporary folder after {n_read:,} points "
+            f"({SPILL_RECORD.itemsize} bytes a point; set [slicing] temp_dir to a larger disk)", folder)
+    return OutputError(f"cannot write the temporary slices: {e.strerror or e}", folder)
 
 
 def _spill_chunk(store: _SpillWriter, chunk: CloudChunk, stamps_s: FloatArray, unit: np.ndarray) -> None:

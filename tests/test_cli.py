@@ -2,14 +2,13 @@
 
 import subprocess
 import sys
-import tomllib
 
 import numpy as np
 import pytest
-
-from conftest import write_synthetic_run
-from kinreg.io.e57 import E57CloudReader
+import tomllib
 from kinreg_cli.main import main
+
+from kinreg.io.e57 import E57CloudReader
 
 
 def run_cli(args, capsys):

@@ -1,8 +1,8 @@
 import laspy
 import numpy as np
 import pytest
-
 from conftest import write_synthetic_run
+
 from kinreg.errors import CloudError
 from kinreg.io.cloud import open_cloud
 

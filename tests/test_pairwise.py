@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+from planefixtures import ROOM, pose, scan_planes
 from scipy import stats
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
@@ -7,7 +8,6 @@ from kinreg.geometry import Pose
 from kinreg.matching import candidate_pairs, match_planes
 from kinreg.pairwise import adjust_pair, drift_sigmas
 from kinreg.types import LinkStatus, PlaneMatch
-from planefixtures import ROOM, pose, scan_planes
 
 DRIFT = DriftConfig()
 PAIR = PairwiseConfig()

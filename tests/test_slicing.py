@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
-
 from conftest import write_synthetic_run
+
 from kinreg.config import SlicingConfig, WindowMode
 from kinreg.errors import InputError
 from kinreg.io.cloud import open_cloud

@@ -2,8 +2,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from conftest import make_trajectory
+
 from kinreg.errors import TrajectoryError
 from kinreg.geometry import rotation_angle_rad
 from kinreg.io.trajectory import (

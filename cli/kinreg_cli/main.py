@@ -185,6 +185,23 @@ def _register_optional_commands() -> None:
 _register_optional_commands()
 
 
+# typer >= 0.2x ships its own copy of click (typer._click) and raises its exceptions, not click's;
+# older typer raises click's. Both kinds are usage errors and aborts, not internal errors.
+_USAGE_ERRORS: tuple[type[Exception], ...] = (click.ClickException,)
+_ABORTS: tuple[type[BaseException], ...] = (KeyboardInterrupt, click.exceptions.Abort)
+try:
+    from typer._click.exceptions import ClickException as _TyperClickException
+    from typer.exceptions import Abort as _TyperAbort
+except ImportError:  # pragma: no cover  (typer < 0.20 uses click itself)
+    pass
+else:
+    _USAGE_ERRORS += (_TyperClickException,)
+    _ABORTS += (_TyperAbort,)
+
+# What typer returns (without standalone mode) when it caught a KeyboardInterrupt.
+_INTERRUPTED = 130
+
+
 def _fail(message: str, code: int) -> None:
     # Plain print, not rich: the one error line must never be wrapped or styled.
     print(f"kinreg: {message}", file=sys.stderr)
@@ -197,11 +214,11 @@ def main(argv: list[str] | None = None) -> None:
         code = app(args=argv, standalone_mode=False)
     except KinregError as e:
         _fail(f"error: {e}", 1)
-    except click.exceptions.Abort:
-        _fail("interrupted", 130)
-    except click.ClickException as e:
-        e.show()
-        sys.exit(e.exit_code)
+    except _ABORTS:
+        _fail("interrupted", _INTERRUPTED)
+    except _USAGE_ERRORS as e:
+        e.show()  # type: ignore[attr-defined]
+        sys.exit(e.exit_code)  # type: ignore[attr-defined]
     except OSError as e:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
         _fail(f"error: {where}{e.strerror or e}", 1)
@@ -209,4 +226,6 @@ def main(argv: list[str] | None = None) -> None:
         if os.environ.get("KINREG_DEBUG"):
             raise
         _fail(f"internal error: {type(e).__name__}: {e} (set KINREG_DEBUG=1 for the traceback)", 2)
+    if code == _INTERRUPTED:
+        _fail("interrupted", _INTERRUPTED)
     sys.exit(code if isinstance(code, int) else 0)
