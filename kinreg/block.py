@@ -195,17 +195,22 @@ def adjust_block(
     )
 
 
-def _check_datum(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> None:
+def loose_parts(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> list[np.ndarray]:
+    """Connected parts of the station graph with neither a fixed station nor a direct observation
+    of a station (each part as its sorted station indices)."""
     labels = _components(observations + [RelativeObservation(ObservationKind.PLANES, n - 1, n - 1,
                                                                Pose.identity(), np.zeros((6, 6)), 0)])
     anchored = set(labels[np.flatnonzero(fixed)])
     anchored |= {labels[o.i] for o in observations if o.kind is ObservationKind.STATION}
-    loose = sorted(set(labels) - anchored)
-    if loose:
-        parts = [np.flatnonzero(labels == c) for c in loose]
+    return [np.flatnonzero(labels == c) for c in sorted(set(labels) - anchored)]
+
+
+def _check_datum(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> None:
+    parts = loose_parts(observations, fixed, n)
+    if parts:
         described = ", ".join(f"stations {p[0]}-{p[-1]}" if len(p) > 1 else f"station {p[0]}" for p in parts[:5])
         raise EstimationError(
-            f"the network has {len(loose)} part(s) without datum ({described}); they are not linked to the "
+            f"the network has {len(parts)} part(s) without datum ({described}); they are not linked to the "
             "fixed stations"
         )
 

@@ -109,6 +109,13 @@ class PairwiseConfig:
     max_rejected_share: float = 0.3  # stop snooping (and fail the link) beyond this share of matches
 
 
+class Disconnected(enum.Enum):
+    """What to do with parts of the network that no link ties to the datum."""
+
+    STOP = "stop"  # stop with a message naming the parts
+    FIX_EACH = "fix_each"  # adjust each part in its own datum: its first station held fixed
+
+
 @dataclasses.dataclass(frozen=True)
 class BlockConfig:
     alpha: float = 0.001  # significance of the global test and of data snooping
@@ -120,6 +127,7 @@ class BlockConfig:
     # (errors shared by all links of a scan and smooth drift do not show in residuals).
     variance_components: bool = True
     max_variance_rounds: int = 10
+    disconnected: Disconnected = Disconnected.STOP
 
 
 class StaticDatum(enum.Enum):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -10,10 +11,18 @@ from pathlib import Path
 
 import numpy as np
 
-from kinreg.block import adjust_block
-from kinreg.config import InputConfig, KinregConfig, PlanesConfig, StaticConfig, StaticDatum, format_toml
+from kinreg.block import adjust_block, loose_parts
+from kinreg.config import (
+    Disconnected,
+    InputConfig,
+    KinregConfig,
+    PlanesConfig,
+    StaticConfig,
+    StaticDatum,
+    format_toml,
+)
 from kinreg.correction import DriftCorrection, write_corrected_las
-from kinreg.errors import ConfigError, OutputError
+from kinreg.errors import ConfigError, EstimationError, OutputError
 from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.cloud import open_cloud
@@ -55,6 +64,8 @@ from kinreg.types import (
     ScanKind,
     Trajectory,
 )
+
+log = logging.getLogger(__name__)
 
 
 def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
@@ -222,6 +233,21 @@ def adjust_network(
     if not datum:
         fixed[0] = True
         datum.append("first station")
+    if references is not None and not fixed.any() and static is None:
+        _check_reference_datum(ties, references)
+    parts = loose_parts(block_observations(stations, links, DriftRates.from_config(config.drift)) + datum_obs,
+                        fixed, len(stations))
+    if parts:
+        names = ", ".join(f"{stations[p[0]].name}..{stations[p[-1]].name}" for p in parts[:5])
+        if config.block.disconnected is Disconnected.STOP:
+            raise EstimationError(
+                f"the network falls apart: {len(parts)} part(s) are not linked to the datum ({names}); set "
+                '[block] disconnected = "fix_each" to adjust each part in its own datum')
+        log.warning("%d part(s) not linked to the datum (%s): each adjusted with its first station fixed",
+                    len(parts), names)
+        for p in parts:
+            fixed[p[0]] = True
+        datum.append(f"{len(parts)} disconnected part(s) each on its first station")
     prior_rates = DriftRates.from_config(config.drift)
     result = adjust_block(poses_initial, block_observations(stations, links, prior_rates) + datum_obs, fixed,
                           config.block, progress)
@@ -231,6 +257,25 @@ def adjust_network(
         result = adjust_block(poses_initial, block_observations(stations, links, rates) + datum_obs, fixed,
                               config.block, progress)
     return AdjustedNetwork(with_window_bias(result, stations, rates), rates, "; ".join(datum), tuple(ties))
+
+
+def _axis_name(v: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(v)))
+    return "xyz"[k] if abs(v[k]) > 0.99 else "(" + ", ".join(f"{c:.2f}" for c in v) + ")"
+
+
+def _check_reference_datum(ties: list[Tie], references: ReferencePlanes) -> None:
+    """The tied reference planes must fix all six datum directions: normals spanning three
+    directions fix the translations (and then the rotations too)."""
+    normals = references.normals[sorted({t.reference for t in ties})]
+    _, sing, Vt = np.linalg.svd(normals)
+    free = [Vt[k] for k in range(3) if k >= len(sing) or sing[k] < 0.1]
+    if free:
+        directions = " and ".join(f"translation along {_axis_name(v)}" for v in free)
+        if len(free) == 2:
+            directions += f", rotation about {_axis_name(normals[0])}"
+        raise ConfigError(f"the tied reference planes do not fix the datum: {directions} stay free; add reference "
+                          "planes in that direction, [[link]] entries, or static scans", references.source)
 
 
 def _adjusted_scans(sequence: QuasiStaticSequence, poses: Pose) -> Iterator[Scan]:

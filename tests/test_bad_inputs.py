@@ -567,7 +567,8 @@ def disconnected_network(env: Env) -> Case:
     path = env.tmp / "far.e57"
     write_e57_sequence(path, [_scan(stamps=False, pose=Pose(np.array([1.0, 0, 0, 0]), np.array([1000.0, 0, 0])))])
     return Case(env.process_args("--static", path), None,
-                r"^the network has 1 part\(s\) without datum \(stations [0-9, -]+\)", env.out_dir / "x")
+                r"^the network falls apart: 1 part\(s\) are not linked to the datum \(qs_\d+\.\.qs_\d+\); set "
+                r"\[block\] disconnected = \"fix_each\"", env.out_dir / "x")
 
 
 CASES = [
@@ -594,10 +595,7 @@ PIPELINE_CASES = [
     pytest.param(reference_duplicate_name, id="reference_duplicate_name"),
     pytest.param(static_scan_without_pose, id="static_scan_without_pose"),
     pytest.param(disconnected_network, id="disconnected_network"),
-    pytest.param(singular_datum, id="singular_datum", marks=pytest.mark.xfail(
-        strict=True, reason="needs pipeline change: the singular datum is caught, but as the solver's "
-        "'normal matrix is singular or not positive definite: the datum is not fixed (1 pivot(s) ...)' without "
-        "the file; it should name the reference-plane file and the directions it leaves free (here: x)")),
+    pytest.param(singular_datum, id="singular_datum"),
 ]
 
 
@@ -757,3 +755,22 @@ def test_usage_errors_are_usage_errors_not_internal_errors(capsys: pytest.Captur
     assert code == 2 and "No such option: --bogus" in err and "internal error" not in err
     code, _, err = run_cli(["slice", "-t", "x.txt"], capsys)
     assert code == 2 and "Missing option" in err and "internal error" not in err
+
+
+def test_disconnected_parts_can_each_be_adjusted_in_their_own_datum(
+    tmp_path: Path, base_run: SyntheticRun, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import json
+
+    env = Env(tmp_path, base_run, monkeypatch)
+    case = disconnected_network(env)
+    config = env.tmp / "fix_each.toml"
+    config.write_text('[block]\ndisconnected = "fix_each"\n')
+    out = env.tmp / "fix_each_out"
+    args = [str(a) for a in case.args]
+    args[args.index("-o") + 1] = str(out)
+    with pytest.raises(SystemExit) as info:
+        main([*args, "--config", str(config)])
+    assert info.value.code == 0, capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert "disconnected part(s) each on its first station" in report["adjustment"]["datum"]

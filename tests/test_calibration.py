@@ -215,7 +215,7 @@ def _cli_app():
     return app
 
 
-def test_cli_plan_calibration_arrangement(tmp_path):
+def test_cli_plan_calibration_arrangement(tmp_path, capsys):
     from typer.testing import CliRunner
 
     arr = tmp_path / "arr.toml"
@@ -230,9 +230,13 @@ def test_cli_plan_calibration_arrangement(tmp_path):
     q = evaluate_arrangement(table2_arrangement(3.0, 2.5, *np.radians([45, 45, 45])),
                              PlanningConfig(zenith_step_deg=0.2))
     assert f"f3 {q.f3_mm:.4f} mm" in out.output
-    bad = CliRunner().invoke(_cli_app(), ["plan-calibration", "--arrangement", str(tmp_path / "x.toml")])
-    assert bad.exit_code == 1
-    assert "not found" in bad.output
+    from kinreg_cli.main import main
+
+    missing = tmp_path / "x.toml"
+    with pytest.raises(SystemExit) as bad:
+        main(["plan-calibration", "--arrangement", str(missing)])
+    assert bad.value.code == 1
+    assert capsys.readouterr().err.strip() == f"kinreg: error: {missing}: arrangement file not found"
 
 
 def test_cli_calibrate_from_files(tmp_path):

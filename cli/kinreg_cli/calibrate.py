@@ -16,7 +16,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from kinreg.errors import ConfigError, InputError, KinregError
+from kinreg.errors import ConfigError, InputError
 
 console = Console()
 
@@ -29,11 +29,6 @@ def _floats(text: str, n: int, what: str) -> list[float]:
     if len(vals) != n:
         raise ConfigError(f"{what} must be {n} comma-separated numbers, got '{text}'")
     return vals
-
-
-def _fail(e: KinregError) -> typer.Exit:
-    console.print(f"[red]error:[/red] {e}")
-    return typer.Exit(1)
 
 
 def _read_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -98,31 +93,28 @@ def calibrate(
     from kinreg.io.reference_planes import read_reference_planes
     from kinreg.io.trajectory import read_trajectory
 
-    try:
-        approx = SystemCalibration(_floats(lever_arm, 3, "--lever-arm"),
-                                   np.radians(_floats(boresight_deg, 3, "--boresight-deg")))
-        ref = read_reference_planes(planes)
-        traj = read_trajectory(trajectory, trajectory_format)
-        points, stamps = _read_points(cloud)
-        cfg = CalibrationConfig(
-            scanner=ScannerSigmas(sigma_d_mm * 1e-3, math.radians(sigma_angle_mdeg * 1e-3),
-                                  math.radians(sigma_angle_mdeg * 1e-3)),
-            tracker=TrackerSigmas(tracker_sigma_t_um * 1e-6, math.radians(tracker_sigma_rot_mdeg * 1e-3)),
-            plane_sigma_d_m=ref.accuracy_m if observe_planes else None,
-            plane_sigma_normal_rad=math.radians(plane_sigma_normal_mdeg * 1e-3) if observe_planes else None,
-        )
-        if plane_index is not None:
-            idx = _read_plane_index(plane_index, len(points))
-            result = estimate_calibration(points, stamps, idx, traj, ref, approx, cfg)
-        else:
-            gate = gate_mm * 1e-3
-            result, idx = calibrate_with_gating(points, stamps, traj, ref, approx, cfg,
-                                                (gate, gate / 4, gate / 16))
-        report = calibration_report(result, cfg, {"cloud": str(cloud), "trajectory": str(trajectory),
-                                                  "planes": str(planes)})
-        write_report(out, "calibration", report, calibration_text(result), overwrite=overwrite)
-    except KinregError as e:
-        raise _fail(e) from None
+    approx = SystemCalibration(_floats(lever_arm, 3, "--lever-arm"),
+                               np.radians(_floats(boresight_deg, 3, "--boresight-deg")))
+    ref = read_reference_planes(planes)
+    traj = read_trajectory(trajectory, trajectory_format)
+    points, stamps = _read_points(cloud)
+    cfg = CalibrationConfig(
+        scanner=ScannerSigmas(sigma_d_mm * 1e-3, math.radians(sigma_angle_mdeg * 1e-3),
+                              math.radians(sigma_angle_mdeg * 1e-3)),
+        tracker=TrackerSigmas(tracker_sigma_t_um * 1e-6, math.radians(tracker_sigma_rot_mdeg * 1e-3)),
+        plane_sigma_d_m=ref.accuracy_m if observe_planes else None,
+        plane_sigma_normal_rad=math.radians(plane_sigma_normal_mdeg * 1e-3) if observe_planes else None,
+    )
+    if plane_index is not None:
+        idx = _read_plane_index(plane_index, len(points))
+        result = estimate_calibration(points, stamps, idx, traj, ref, approx, cfg)
+    else:
+        gate = gate_mm * 1e-3
+        result, idx = calibrate_with_gating(points, stamps, traj, ref, approx, cfg,
+                                            (gate, gate / 4, gate / 16))
+    report = calibration_report(result, cfg, {"cloud": str(cloud), "trajectory": str(trajectory),
+                                              "planes": str(planes)})
+    write_report(out, "calibration", report, calibration_text(result), overwrite=overwrite)
 
     table = Table(title="system calibration")
     for col in ("parameter", "value", "sigma"):
@@ -176,39 +168,36 @@ def plan_calibration(
     from kinreg.calibration.model import PARAMETER_NAMES
     from kinreg.calibration.planning import Table2Tables, Table3Grid
 
-    try:
-        la = _floats(lever_arm, 3, "--lever-arm")
-        cfg = PlanningConfig(
-            scanner=ScannerSigmas(sigma_d_mm * 1e-3, math.radians(sigma_angle_mdeg * 1e-3),
-                                  math.radians(sigma_angle_mdeg * 1e-3)),
-            tracker=None if no_tracker else TrackerSigmas(tracker_sigma_t_um * 1e-6,
-                                                          math.radians(tracker_sigma_rot_mdeg * 1e-3)),
-            zenith_step_deg=zenith_step_deg, plane_size_m=plane_size_m,
-            lever_arm_m=(la[0], la[1], la[2]), object_distance_m=distance_m, n_profiles=profiles)
-        if arrangement is not None:
-            q = evaluate_arrangement(read_arrangement(arrangement, plane_size_m), cfg)
-            table = Table(title=f"arrangement {arrangement.name}")
-            table.add_column("parameter")
-            table.add_column("sigma", justify="right")
-            for name, s in zip(PARAMETER_NAMES, q.sigmas, strict=True):
-                table.add_row(name, f"{s * 1e3:.4f} mm" if name.startswith("t")
-                              else f"{math.degrees(s) * 1e3:.4f} mdeg")
-            console.print(table)
-            console.print(f"f1 {q.f1_mm:.4f} mm, f2 {q.f2_mm:.4f} mm, f3 {q.f3_mm:.4f} mm; "
-                          f"points per plane {q.points_per_plane}")
-            return
-        grid = Table3Grid()
-        tables = Table2Tables(grid, cfg)
-        result = exhaustive_search(cfg, grid, tables)
-        evo = []
-        if method in (PlanMethod.EVOLUTION, PlanMethod.BOTH):
-            evo = [optimise_evolution(f, cfg, grid, tables, seed=seed) for f in ("f1", "f2", "f3")]
-        report = planning_report(result, cfg, evo, top=top)
-        text = planning_text(report)
-        if out is not None:
-            write_report(out, "planning", report, text, overwrite=overwrite)
-    except KinregError as e:
-        raise _fail(e) from None
+    la = _floats(lever_arm, 3, "--lever-arm")
+    cfg = PlanningConfig(
+        scanner=ScannerSigmas(sigma_d_mm * 1e-3, math.radians(sigma_angle_mdeg * 1e-3),
+                              math.radians(sigma_angle_mdeg * 1e-3)),
+        tracker=None if no_tracker else TrackerSigmas(tracker_sigma_t_um * 1e-6,
+                                                      math.radians(tracker_sigma_rot_mdeg * 1e-3)),
+        zenith_step_deg=zenith_step_deg, plane_size_m=plane_size_m,
+        lever_arm_m=(la[0], la[1], la[2]), object_distance_m=distance_m, n_profiles=profiles)
+    if arrangement is not None:
+        q = evaluate_arrangement(read_arrangement(arrangement, plane_size_m), cfg)
+        table = Table(title=f"arrangement {arrangement.name}")
+        table.add_column("parameter")
+        table.add_column("sigma", justify="right")
+        for name, s in zip(PARAMETER_NAMES, q.sigmas, strict=True):
+            table.add_row(name, f"{s * 1e3:.4f} mm" if name.startswith("t")
+                          else f"{math.degrees(s) * 1e3:.4f} mdeg")
+        console.print(table)
+        console.print(f"f1 {q.f1_mm:.4f} mm, f2 {q.f2_mm:.4f} mm, f3 {q.f3_mm:.4f} mm; "
+                      f"points per plane {q.points_per_plane}")
+        return
+    grid = Table3Grid()
+    tables = Table2Tables(grid, cfg)
+    result = exhaustive_search(cfg, grid, tables)
+    evo = []
+    if method in (PlanMethod.EVOLUTION, PlanMethod.BOTH):
+        evo = [optimise_evolution(f, cfg, grid, tables, seed=seed) for f in ("f1", "f2", "f3")]
+    report = planning_report(result, cfg, evo, top=top)
+    text = planning_text(report)
+    if out is not None:
+        write_report(out, "planning", report, text, overwrite=overwrite)
 
     table = Table(title=f"best of {report['n_arrangements']} arrangements "
                   f"({report['seconds']:.1f} s exhaustive)")

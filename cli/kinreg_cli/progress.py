@@ -15,7 +15,7 @@ from rich.progress import (
 
 
 class RichProgress:
-    """One bar per stage, advanced per chunk or per scan."""
+    """One bar per stage, advanced per chunk or per scan; nothing when the console is not a terminal."""
 
     def __init__(self, console: Console) -> None:
         self._console = console
@@ -24,6 +24,8 @@ class RichProgress:
 
     def start(self, stage: str, total: float | None = None, unit: str = "") -> None:
         self.finish()
+        if not self._console.is_terminal:
+            return  # bars are for people: logs and pipes get only the results and the errors
         self._bar = Progress(
             TextColumn(f"[bold]{stage:<16}"),
             BarColumn(),

@@ -25,6 +25,7 @@ from kinreg.calibration.planning import (
     PlanningConfig,
 )
 from kinreg.errors import OutputError
+from kinreg.io.atomic import atomic_path, check_writable_target
 
 REPORT_SCHEMA_VERSION = 1
 
@@ -110,13 +111,11 @@ def write_report(out_dir: str | Path, stem: str, report: dict[str, Any], text: s
         raise OutputError(f"cannot create output folder: {e}", d) from None
     paths = (d / f"{stem}.json", d / f"{stem}.txt")
     for p in paths:
-        if p.exists() and not overwrite:
-            raise OutputError("exists (use --overwrite)", p)
-    try:
-        paths[0].write_text(json.dumps(report, indent=2, allow_nan=True) + "\n", encoding="utf-8")
-        paths[1].write_text(text, encoding="utf-8")
-    except OSError as e:
-        raise OutputError(f"cannot write report: {e}", d) from None
+        check_writable_target(p, overwrite)
+    with atomic_path(paths[0], overwrite=overwrite) as tmp:
+        tmp.write_text(json.dumps(report, indent=2, allow_nan=True) + "\n", encoding="utf-8")
+    with atomic_path(paths[1], overwrite=overwrite) as tmp:
+        tmp.write_text(text, encoding="utf-8")
     return paths
 
 

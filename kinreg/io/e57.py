@@ -374,8 +374,8 @@ class _E57File:
         header = self.headers[index]
         if header.T_obj_scan is None and require_pose:
             raise CloudError(
-                f"{header.label} has no pose; kinreg needs every static scan's pose "
-                "(read it with require_pose=False to take the identity)",
+                f"{header.label} has no pose; static scans must carry their registered pose "
+                "in the object frame",
                 self.path,
             )
         blocks = list(self.iter_blocks(index, DEFAULT_CHUNK_POINTS, drop_invalid_time=False))
