@@ -38,7 +38,8 @@ class DriftCorrection:
     trajectory: Trajectory
 
     @classmethod
-    def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose, trajectory: Trajectory) -> DriftCorrection:
+    def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose,
+                      trajectory: Trajectory) -> DriftCorrection:
         """From the initial and adjusted poses of the time-stamped stations (sorted by time)."""
         order = np.argsort(stamps_s)
         q_corr = quat_multiply(adjusted.quat_wxyz[order], initial.inverse().quat_wxyz[order])
@@ -56,13 +57,20 @@ class DriftCorrection:
     def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
         """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,)."""
         rotvec, delta = self._at(stamps_s)
-        inside = self.trajectory.covers(stamps_s)
-        pivot = np.empty_like(xyz)
-        t = np.clip(stamps_s, self.trajectory.t_start_s, self.trajectory.t_end_s)
-        pivot[:] = self.trajectory.pose_at(t).t_xyz
-        del inside
+        pivot = self._positions_at(stamps_s)
         R = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix
         return np.einsum("nij,nj->ni", R, xyz - pivot) + pivot + delta
+
+    def _positions_at(self, query_s: FloatArray) -> FloatArray:
+        """The trajectory's positions at ``query_s`` (clamped to its range): the translation part
+        of :func:`kinreg.geometry.interpolate_poses`, same formula and rounding, without the
+        per-point SLERP that the pivot does not need (it was most of the correction's time)."""
+        s = self.trajectory.stamps_s
+        p = self.trajectory.poses.t_xyz
+        q = np.clip(np.asarray(query_s, dtype=np.float64), s[0], s[-1])
+        i = np.clip(np.searchsorted(s, q, side="right") - 1, 0, len(s) - 2)
+        u = np.clip((q - s[i]) / (s[i + 1] - s[i]), 0.0, 1.0)
+        return p[i] + u[..., None] * (p[i + 1] - p[i])
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""

@@ -1212,7 +1212,8 @@ def write_cloud_laz(path: str | os.PathLike[str], run: SimulatedRun,
     header = _las_header(run)
     n_total = 0
     compress = str(path).lower().endswith(".laz")
-    with atomic_path(path, overwrite=True) as tmp, laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
+    with atomic_path(path, overwrite=True) as tmp, \
+            laspy.open(tmp, mode="w", header=header, do_compress=compress) as writer:
         for blk in blocks if blocks is not None else run.iter_cloud_blocks():
             if len(blk) == 0:
                 continue

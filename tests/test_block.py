@@ -12,7 +12,8 @@ from kinreg.types import ObservationKind, RelativeObservation
 
 def true_stations(n: int, rng) -> Pose:
     s = np.arange(n)
-    xyz = np.column_stack([8 * np.cos(s / n * 2 * np.pi), 5 * np.sin(s / n * 2 * np.pi), 1.5 + 0.1 * rng.normal(size=n)])
+    angle = s / n * 2 * np.pi
+    xyz = np.column_stack([8 * np.cos(angle), 5 * np.sin(angle), 1.5 + 0.1 * rng.normal(size=n)])
     rot = np.column_stack([0.05 * rng.normal(size=n), 0.05 * rng.normal(size=n), s / n * 2 * np.pi])
     return Pose(rotvec_to_quat(rot), xyz)
 

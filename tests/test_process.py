@@ -48,7 +48,6 @@ def test_adjusted_stations_are_closer_to_the_truth(processed):
     t = np.array([float(r["t"]) for r in rows])
     adjusted = np.array([[float(r[k]) for k in "xyz"] for r in rows])
     truth = read_trajectory(processed / "data" / "truth_trajectory.txt").pose_at(t).t_xyz
-    initial = read_trajectory(processed / "data" / "run_trajectory.txt").pose_at(t).t_xyz
     R, tt = rigid_fit(adjusted, truth)
     err = np.linalg.norm(adjusted @ R.T + tt - truth, axis=1)
     assert np.sqrt(np.mean(err**2)) < 0.003
@@ -139,7 +138,8 @@ def test_reference_planes_as_datum_and_as_built(processed):
 
 def test_reference_file_with_errors_is_one_line(processed, capsys):
     bad = processed / "bad_reference.toml"
-    bad.write_text('plane_construction_accuracy_m = 0.05\n[[plane]]\nname = "w"\naxis = "q"\noffset_m = 0\nnormal_sign = 1\n')
+    bad.write_text('plane_construction_accuracy_m = 0.05\n[[plane]]\nname = "w"\naxis = "q"\n'
+                   'offset_m = 0\nnormal_sign = 1\n')
     assert run_process(processed, "bad_reference", "--reference", bad) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"kinreg: error: {bad}") and "axis" in err and len(err.splitlines()) == 1

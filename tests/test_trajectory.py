@@ -56,7 +56,8 @@ def test_writers_round_trip_through_readers(tmp_path, writer):
 
 def test_tum_order_is_xyzw(tmp_path):
     path = tmp_path / "traj.txt"
-    path.write_text("# timestamp tx ty tz qx qy qz qw\n0.0 1 2 3 0 0 0 1\n1.0 1 2 3 0 0 0.7071067811865476 0.7071067811865476\n")
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n0.0 1 2 3 0 0 0 1\n"
+                    "1.0 1 2 3 0 0 0.7071067811865476 0.7071067811865476\n")
     traj = read_trajectory(path)  # recognised by its header
     np.testing.assert_allclose(traj.poses.quat_wxyz[1], [0.7071067811865476, 0, 0, 0.7071067811865476])
 

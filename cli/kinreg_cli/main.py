@@ -154,7 +154,8 @@ def process_command(
     table.add_row("links", f"{summary.n_links}")
     verdict = "passed" if summary.global_test_passed else "FAILED (sigmas scaled by sigma0)"
     table.add_row("sigma0", f"{summary.sigma0:.3f} (global test {verdict})")
-    table.add_row("position sigma", f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm")
+    table.add_row("position sigma",
+                  f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm")
     table.add_row("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm")
     table.add_row("rejected observations", f"{summary.n_rejected}")
     table.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items()))
