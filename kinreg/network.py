@@ -182,7 +182,7 @@ def with_window_bias(result: BlockResult, stations: Sequence[Station], rates: Dr
     """The block result with each free station's covariance increased by the window bias of the
     station and of the datum station (positions are relative to the datum's scan frame)."""
     cov_xi = result.cov_xi.copy()
-    datum = [k for k in np.flatnonzero(result.fixed)]
+    datum = [int(k) for k in np.flatnonzero(result.fixed)]
     for k, s in enumerate(stations):
         if result.fixed[k]:
             continue

@@ -220,7 +220,7 @@ def adjust_network(
             datum.append("static scans fixed")
         else:
             sigma = np.array([static.sigma_mm / 1000.0] * 3 + [np.radians(static.sigma_mdeg / 1000.0)] * 3)
-            datum_obs += [RelativeObservation(ObservationKind.STATION, k, -1, stations[k].T_obj_scan,
+            datum_obs += [RelativeObservation(ObservationKind.STATION, int(k), -1, stations[k].T_obj_scan,
                                               np.diag(1.0 / sigma**2), 6) for k in np.flatnonzero(is_static)]
             datum.append("static scans observed")
     if references is not None:

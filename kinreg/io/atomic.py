@@ -37,7 +37,7 @@ def temporary_name(path: Path) -> Path:
 
 
 @contextmanager
-def atomic_path(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike[str], overwrite: bool = False) -> Iterator[Path]:
     """Yield a temporary path to write to; rename it to ``path`` if the block succeeds.
 
     On any exception the temporary file is removed and the exception propagates (``OSError``

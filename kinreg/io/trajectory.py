@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import enum
 import io
+import os
 import logging
 import re
 from collections.abc import Mapping, Sequence
@@ -337,7 +338,7 @@ def format_geoslam(traj: Trajectory) -> str:
     return buf.getvalue()
 
 
-def write_trajectory_geoslam(path: str | Path, traj: Trajectory, overwrite: bool = False) -> None:
+def write_trajectory_geoslam(path: str | os.PathLike[str], traj: Trajectory, overwrite: bool = False) -> None:
     """Write GeoSLAM text atomically (temporary name, then rename)."""
     _atomic_write_text(Path(path), format_geoslam(traj), overwrite)
 
