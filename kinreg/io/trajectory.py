@@ -16,8 +16,8 @@ from __future__ import annotations
 import csv
 import enum
 import io
-import os
 import logging
+import os
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
