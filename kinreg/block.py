@@ -292,7 +292,7 @@ def _test_observations(poses, observations, active, fixed, free_index, weights, 
     tests = [
         ObservationTest(int(idx[k]), ObservationKind(kinds[k]), int(obs_i[k]), int(observations[idx[k]].j),
                         float(statistic[k]), int(dof[k]), float(r_k[k]), float(np.sqrt(statistic[k] / dof[k])),
-                        False, float(vtpv[k]))
+                        False, float(vtpv[k]), JQJ[k])
         for k in np.flatnonzero(keep)
     ]
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag

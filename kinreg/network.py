@@ -160,20 +160,31 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates) -> DriftRates:
     """The drift velocity measured by the adjustment: the change of the correction (shift at the
     station, rotation) between consecutive quasi-static stations over their time difference,
-    RMS per object axis. The prior rates are a floor: the estimate only ever raises them.
+    RMS per object axis, less the adjustment's own noise in that change (the covariance of the
+    adjusted relative pose, from the block's trajectory-link tests). The prior rates are a floor:
+    the estimate only ever raises them.
 
     Smooth drift is invisible in residuals (consecutive trajectory links err alike), but the
     corrections themselves show it wherever planes fix the stations.
     """
+    noise = {(t.i, t.j): t.cov_adjusted for t in result.tests
+             if t.kind is ObservationKind.TRAJECTORY and t.cov_adjusted is not None and not t.rejected}
     seq = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
     if len(seq) < 3:
         return prior
-    shift = result.poses.t_xyz[seq] - result.poses_initial.t_xyz[seq]
-    rot = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz[seq])
-    t = np.array([stations[k].t_s for k in seq])
-    dt = np.diff(t)[:, None]
-    pos_rate = np.sqrt(np.mean((np.diff(shift, axis=0) / dt) ** 2, axis=0))
-    rot_rate = np.sqrt(np.mean((np.diff(rot, axis=0) / dt) ** 2, axis=0))
+    shift = result.poses.t_xyz - result.poses_initial.t_xyz
+    rot = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz)
+    pos_sq, rot_sq = [], []
+    for a, b in itertools.pairwise(seq):
+        dt = stations[b].t_s - stations[a].t_s
+        cov = noise.get((a, b), np.zeros((6, 6)))
+        R = result.poses.rotation_matrix[a]
+        pos_noise = np.diag(R @ cov[:3, :3] @ R.T)
+        rot_noise = np.diag(R @ cov[3:, 3:] @ R.T)
+        pos_sq.append(((shift[b] - shift[a]) ** 2 - pos_noise) / dt**2)
+        rot_sq.append(((rot[b] - rot[a]) ** 2 - rot_noise) / dt**2)
+    pos_rate = np.sqrt(np.maximum(np.mean(pos_sq, axis=0), 0.0))
+    rot_rate = np.sqrt(np.maximum(np.mean(rot_sq, axis=0), 0.0))
     return DriftRates(np.maximum(prior.pos_m_per_s, pos_rate), np.maximum(prior.rot_rad_per_s, rot_rate),
                       prior.pos_floor_m, prior.rot_floor_rad, estimated=True)
 
