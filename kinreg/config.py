@@ -100,6 +100,11 @@ class MatchingConfig:
     coplanar_angle_deg: float = 1.0  # patches closer than this are one physical plane ...
     coplanar_offset_m: float = 0.02  # ... if also this close
     min_matches: int = 3  # a pair with fewer plane matches is not linked
+    # Experimental, off (0): a pair whose matches span fewer than three directions is searched for
+    # a translation of up to this much (a jump in the trajectory) and linked with a loose prior.
+    # It finds real jumps, but the block's data snooping does not yet reliably reject the jumped
+    # trajectory links afterwards (see benchmarks/RESULTS.md, robustness).
+    max_jump_m: float = dataclasses.field(default=0.0, metadata={"allow_zero": True})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,6 +225,10 @@ def _check_section(section: Any, where: str) -> None:
     for f in dataclasses.fields(section):
         v = getattr(section, f.name)
         positive = f.name.endswith(("_s", "_m", "_points")) and not f.name.startswith("min_")
+        if f.metadata.get("allow_zero"):
+            positive = False
+            if isinstance(v, int | float) and v < 0:
+                raise ConfigError(f"[{where}] {f.name}: must not be negative, got {v}")
         if positive and isinstance(v, int | float) and not v > 0:
             raise ConfigError(f"[{where}] {f.name}: must be positive, got {v}")
         if f.name.startswith("min_") and isinstance(v, int | float) and v < 0:

@@ -11,6 +11,8 @@ catches what slips through.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -154,3 +156,50 @@ def count_directions(normals: FloatArray, min_angle_deg: float = 20.0) -> int:
         if all(abs(float(n @ r)) < cos_min for r in reps):
             reps.append(n)
     return len(reps)
+
+
+def coarse_translation(
+    planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...], T_i_j: Pose, config: MatchingConfig
+) -> FloatArray | None:
+    """A translation (3,) in scan i's frame that brings the planes of scan j onto those of scan i,
+    when the approximate transform is off by more than the matching gates (a jump in the
+    trajectory). Voting: every pair of planes with agreeing normals says ``n . tau = d_a - d_b``;
+    triples of such pairs with normals in three directions give candidates, and the candidate
+    most pairs agree with (within ``coplanar_offset_m``, at least ``min_matches + 1`` of them, in
+    three directions) wins if it is within ``max_jump_m``. Rotation errors are not searched.
+    Returns ``None`` when no such translation stands out.
+    """
+    if len(planes_i) < 3 or len(planes_j) < 3:
+        return None
+    n_a = np.array([p.normal for p in planes_i])
+    d_a = np.array([p.d_m for p in planes_i])
+    n_b, d_b = transform_planes(np.array([p.normal for p in planes_j]), np.array([p.d_m for p in planes_j]), T_i_j)
+    ia, ib = np.nonzero(n_a @ n_b.T >= np.cos(np.radians(config.max_angle_deg)))
+    if len(ia) < 3:
+        return None
+    normals = n_a[ia]
+    delta = d_a[ia] - d_b[ib]
+    keep = np.abs(delta) <= config.max_jump_m
+    normals, delta = normals[keep], delta[keep]
+    if len(delta) < 3:
+        return None
+    rng = np.random.default_rng(0)  # deterministic: the same pair always gives the same answer
+    n = len(delta)
+    triples = (np.array(list(itertools.combinations(range(n), 3))) if n <= 24
+               else rng.integers(0, n, size=(2000, 3)))
+    best, best_count = None, 0
+    for tri in triples:
+        M = normals[tri]
+        if abs(np.linalg.det(M)) < 0.3:
+            continue
+        tau = np.linalg.solve(M, delta[tri])
+        if np.linalg.norm(tau) > config.max_jump_m:
+            continue
+        inliers = np.abs(normals @ tau - delta) <= config.coplanar_offset_m
+        count = int(inliers.sum())
+        if count > best_count and count_directions(normals[inliers]) >= 3:
+            best, best_count = tau, count
+    if best is None or best_count < config.min_matches + 1:
+        return None
+    inliers = np.abs(normals @ best - delta) <= config.coplanar_offset_m
+    return np.linalg.lstsq(normals[inliers], delta[inliers], rcond=None)[0]

@@ -14,10 +14,19 @@ import numpy as np
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.geometry import Pose, quat_to_rotvec
-from kinreg.matching import candidate_pairs, match_planes
+from kinreg.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.pairwise import adjust_pair
 from kinreg.progress import NullProgress, Progress
-from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, RelativeObservation, ScanKind
+from kinreg.types import (
+    BlockResult,
+    Link,
+    LinkStatus,
+    ObservationKind,
+    Plane,
+    PlaneMatch,
+    RelativeObservation,
+    ScanKind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +85,22 @@ def link_stations(
         si, sj = stations[i], stations[j]
         T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
         matches = match_planes(planes[i], planes[j], T_prior, matching)
+        sigma = None
+        if matching.max_jump_m > 0 and _directions(matches, planes[i]) < 3:
+            # Robust step: the trajectory may have jumped between the two scans, so that the planes
+            # across the jump no longer match (those along it still may).
+            tau = coarse_translation(planes[i], planes[j], T_prior, matching)
+            if tau is not None and np.linalg.norm(tau) > matching.max_offset_m:
+                shifted = Pose(np.array([1.0, 0, 0, 0]), tau).compose(T_prior)
+                realigned = match_planes(planes[i], planes[j], shifted, matching)
+                if (len(realigned) >= matching.min_matches
+                        and _directions(realigned, planes[i]) > _directions(matches, planes[i])):
+                    log.info("pair %s-%s: trajectory off by %.3f m; linked after a translation search",
+                             si.name, sj.name, float(np.linalg.norm(tau)))
+                    matches, T_prior = realigned, shifted
+                    loose = float(np.linalg.norm(tau)) + matching.max_offset_m
+                    sigma = np.array([loose] * 3 + [np.radians(1.0)] * 3)
         if len(matches) >= matching.min_matches:
-            sigma = None
             if static is not None and ScanKind.STATIC in (si.kind, sj.kind):
                 sigma = np.array([static.prior_sigma_m] * 3 + [np.radians(static.prior_sigma_deg)] * 3)
             links.append(adjust_pair(i, j, planes[i], planes[j], T_prior, _dt(si, sj), matches, drift, pairwise,
@@ -87,6 +110,12 @@ def link_stations(
     n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
     log.info("%d candidate pairs, %d links (%d rejected)", len(pairs), len(links), n_rejected)
     return links
+
+
+def _directions(matches: tuple[PlaneMatch, ...], planes_i: tuple[Plane, ...]) -> int:
+    """Distinct normal directions among the matched planes of scan i."""
+    by_id = {p.plane_id: p for p in planes_i}
+    return count_directions(np.array([by_id[m.plane_i].normal for m in matches]).reshape(-1, 3))
 
 
 def _dt(a: Station, b: Station) -> float:
@@ -160,7 +189,7 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates) -> DriftRates:
     """The drift velocity measured by the adjustment: the change of the correction (shift at the
     station, rotation) between consecutive quasi-static stations over their time difference,
-    RMS per object axis, less the adjustment's own noise in that change (the covariance of the
+    robust RMS (from the median) per object axis, less the adjustment's own noise in that change (the covariance of the
     adjusted relative pose, from the block's trajectory-link tests). The prior rates are a floor:
     the estimate only ever raises them.
 
@@ -174,17 +203,20 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
         return prior
     shift = result.poses.t_xyz - result.poses_initial.t_xyz
     rot = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz)
-    pos_sq, rot_sq = [], []
+    pos_v, rot_v, pos_noise, rot_noise = [], [], [], []
     for a, b in itertools.pairwise(seq):
         dt = stations[b].t_s - stations[a].t_s
         cov = noise.get((a, b), np.zeros((6, 6)))
         R = result.poses.rotation_matrix[a]
-        pos_noise = np.diag(R @ cov[:3, :3] @ R.T)
-        rot_noise = np.diag(R @ cov[3:, 3:] @ R.T)
-        pos_sq.append(((shift[b] - shift[a]) ** 2 - pos_noise) / dt**2)
-        rot_sq.append(((rot[b] - rot[a]) ** 2 - rot_noise) / dt**2)
-    pos_rate = np.sqrt(np.maximum(np.mean(pos_sq, axis=0), 0.0))
-    rot_rate = np.sqrt(np.maximum(np.mean(rot_sq, axis=0), 0.0))
+        pos_noise.append(np.diag(R @ cov[:3, :3] @ R.T) / dt**2)
+        rot_noise.append(np.diag(R @ cov[3:, 3:] @ R.T) / dt**2)
+        pos_v.append((shift[b] - shift[a]) / dt)
+        rot_v.append((rot[b] - rot[a]) / dt)
+    # Median-based (1.4826 MAD about zero): a jump in the trajectory is one huge change, not drift.
+    pos_rate = np.sqrt(np.maximum((1.4826 * np.median(np.abs(pos_v), axis=0)) ** 2
+                                  - np.median(pos_noise, axis=0), 0.0))
+    rot_rate = np.sqrt(np.maximum((1.4826 * np.median(np.abs(rot_v), axis=0)) ** 2
+                                  - np.median(rot_noise, axis=0), 0.0))
     return DriftRates(np.maximum(prior.pos_m_per_s, pos_rate), np.maximum(prior.rot_rad_per_s, rot_rate),
                       prior.pos_floor_m, prior.rot_floor_rad, estimated=True)
 

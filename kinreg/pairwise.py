@@ -96,7 +96,9 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
     for _ in range(max_iterations):
         w, A, B = design.linearise(T)
         Q_ww = B @ design.Q_ll @ B.T
-        W = np.linalg.inv(Q_ww)
+        # pinv: conditions that repeat one another (one plane matched to two coplanar patches
+        # twice over) leave Q_ww singular; they then count once.
+        W = np.linalg.pinv(Q_ww, hermitian=True)
         N_p = A.T @ W @ A
         N = N_p + P_prior
         step = np.linalg.solve(N, -(A.T @ W @ w + P_prior @ xi))
@@ -106,7 +108,7 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
             break
     w, A, B = design.linearise(T)
     Q_ww = B @ design.Q_ll @ B.T
-    W = np.linalg.inv(Q_ww)
+    W = np.linalg.pinv(Q_ww, hermitian=True)
     N_p = A.T @ W @ A
     Q_xx = np.linalg.inv(N_p + P_prior)
     Q_ee = Q_ww - A @ Q_xx @ A.T
@@ -167,7 +169,8 @@ def adjust_pair(
     P_prior = np.diag(1.0 / sigma_prior**2)
     by_id_i = {p.plane_id: p for p in planes_i}
     by_id_j = {p.plane_id: p for p in planes_j}
-    active = list(matches)
+    # A plane pair stated twice would make two identical conditions (a singular Q_ww).
+    active = list({(m.plane_i, m.plane_j): m for m in matches}.values())
     rejected: list[PlaneMatch] = []
     max_rejected = int(np.floor(config.max_rejected_share * len(matches)))
     sol: dict | None = None
