@@ -76,9 +76,9 @@ def with_jumps(data: Path, folder: Path, jump_times: tuple[float, float]) -> tup
 
 
 def run(name: str, work: Path, inject: bool = False, jumps: bool = False, seed: int = 0) -> dict:
-    import kinreg.network as network
     from eval_accuracy import scenario_config
 
+    import kinreg.network as network
     from kinreg.config import KinregConfig
     from kinreg.pipeline import ProcessInputs, process
     from kinreg.simulation import simulate_run, write_run
