@@ -1,0 +1,184 @@
+"""Where per-scan and per-pair work runs: in this process, in local worker processes, or on a
+Dask distributed cluster. Only :mod:`concurrent.futures` executors; no scheduler of our own.
+
+- ``workers=1``: in this process, one task after the other (debugging, tests, profiling).
+- ``workers=N > 1`` (``None``: every core): a :class:`~concurrent.futures.ProcessPoolExecutor`
+  started with ``forkserver`` (``spawn`` where the platform has no forkserver). Not ``fork``:
+  the parent holds threads (lazrs' decoder pool, a progress renderer, BLAS) and forking a
+  threaded process can copy a held lock into the child and deadlock it. ``forkserver`` forks the
+  workers from a small clean server process, so each worker starts without the parent's
+  threads and memory, and faster than ``spawn`` (the interpreter is not started from scratch
+  per worker).
+- ``scheduler="tcp://host:8786"``: ``dask.distributed.Client(address).get_executor()``; dask is
+  imported only then (the optional extra ``kinreg[dask]``).
+
+The functions given to :func:`parallel_map` must be importable top-level functions of a module
+(not lambdas, closures or functions defined in ``__main__`` of a script run by a worker), and
+their arguments and results must be picklable: process pools and Dask move them between
+processes with pickle. That is kinreg talking to its own workers; nothing a user supplies is
+unpickled. Keep arguments small (a scan index and a spill path, not the scan's points): every
+argument is copied to the worker.
+
+Results come back in input order whatever the number of workers, and the tasks themselves do
+not depend on it, so results are identical for any ``workers`` and for a cluster.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from kinreg.errors import ConfigError
+from kinreg.progress import NullProgress, Progress
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class InProcessExecutor(Executor):
+    """Runs each task at submission, in the calling thread: no pool, plain tracebacks."""
+
+    def submit(self, fn: Callable[..., R], /, *args: Any, **kwargs: Any) -> Future[R]:
+        future: Future[R] = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # handed to the caller through the future, as a pool does
+            future.set_exception(e)
+        return future
+
+
+@dataclass(frozen=True)
+class ExecutorContext:
+    """An open executor and how many tasks it runs at once (``n_slots``)."""
+
+    executor: Executor
+    n_slots: int
+    kind: str  # "in-process", "processes" or "dask"
+
+    def map(self, fn: Callable[[T], R], iterable: Iterable[T], chunksize: int = 1) -> Iterator[R]:
+        """``fn`` over ``iterable``, results in input order (``chunksize`` batches tasks for a
+        process pool; ignored elsewhere)."""
+        if isinstance(self.executor, ProcessPoolExecutor):
+            return self.executor.map(fn, iterable, chunksize=chunksize)
+        return self.executor.map(fn, iterable)
+
+
+def default_workers() -> int:
+    """The cores this process may use (the affinity mask, not the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover  (macOS, Windows)
+        return max(1, os.cpu_count() or 1)
+
+
+def _mp_context() -> multiprocessing.context.BaseContext:
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+@contextmanager
+def make_executor(workers: int | None = None, scheduler: str | None = None,
+                  connect_timeout_s: float = 30.0) -> Iterator[ExecutorContext]:
+    """Open the executor for ``workers`` local processes (``None``: every core, 1: in this
+    process) or for the Dask scheduler at ``scheduler`` (then ``workers`` is ignored; give up
+    connecting after ``connect_timeout_s``); shut it down on exit. Raises :class:`ConfigError`
+    for ``workers < 1``, a missing dask or an unreachable scheduler.
+    """
+    if scheduler:
+        with _dask_executor(scheduler, connect_timeout_s) as ctx:
+            yield ctx
+        return
+    n = default_workers() if workers is None else int(workers)
+    if n < 1:
+        raise ConfigError(f"workers must be at least 1, got {n}")
+    if n == 1:
+        yield ExecutorContext(InProcessExecutor(), 1, "in-process")
+        return
+    pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context())
+    try:
+        yield ExecutorContext(pool, n, "processes")
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+@contextmanager
+def _dask_executor(address: str, timeout_s: float) -> Iterator[ExecutorContext]:
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ConfigError("--scheduler needs dask: pip install 'kinreg[dask]'") from None
+    try:
+        client = Client(address, timeout=f"{timeout_s}s", set_as_default=False)
+    except (OSError, TimeoutError) as e:
+        raise ConfigError(f"cannot connect to the Dask scheduler at {address}: {e}") from None
+    try:
+        n_slots = max(1, sum(client.nthreads().values()))
+        # pure=False: never let Dask merge two submissions with equal arguments into one task.
+        executor = client.get_executor(pure=False)
+        log.info("Dask scheduler %s: %d worker threads", address, n_slots)
+        yield ExecutorContext(executor, n_slots, "dask")
+        executor.shutdown(wait=True)
+    finally:
+        client.close()
+
+
+def parallel_map(
+    fn: Callable[[T], R],
+    items: Iterable[T],
+    executor: ExecutorContext,
+    progress: Progress | None = None,
+    max_in_flight: int | None = None,
+    on_result: Callable[[int, R], None] | None = None,
+) -> list[R]:
+    """``[fn(x) for x in items]`` on ``executor``, in input order; ``progress.advance(1)`` as each
+    task finishes (in completion order, from the calling thread). The caller starts and finishes
+    the progress stage.
+
+    At most ``max_in_flight`` tasks (default four per slot) are submitted ahead, so ``items`` may
+    be a lazy generator and only that many arguments and unread results are alive at once
+    beyond the returned list. ``on_result(index, result)`` is called in the calling thread as each
+    task finishes (e.g. to store it in the stage cache, so that a killed run keeps what it did).
+    The first task that raises cancels the rest and its exception propagates.
+    """
+    progress = progress or NullProgress()
+    limit = max_in_flight or 4 * executor.n_slots
+    results: dict[int, R] = {}
+    running: set[Future[R]] = set()
+    index_of: dict[Future[R], int] = {}
+    it = iter(items)
+    exhausted = False
+    n_submitted = 0
+    try:
+        while True:
+            while not exhausted and len(running) < limit:
+                try:
+                    item = next(it)
+                except StopIteration:
+                    exhausted = True
+                    break
+                future = executor.executor.submit(fn, item)
+                index_of[future] = n_submitted
+                running.add(future)
+                n_submitted += 1
+            if not running:
+                break
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                running.discard(future)
+                index = index_of.pop(future)
+                results[index] = future.result()  # raises the task's exception
+                if on_result is not None:
+                    on_result(index, results[index])
+                progress.advance(1)
+    finally:
+        for future in running:
+            future.cancel()
+    return [results[k] for k in range(n_submitted)]
