@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
+from kinreg.executor import ExecutorContext, parallel_map
 from kinreg.geometry import Pose, quat_to_rotvec
 from kinreg.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.pairwise import adjust_pair
@@ -61,6 +62,45 @@ def station_pairs(stations: Sequence[Station], matching: MatchingConfig,
     return sorted(pairs)
 
 
+def link_pair(
+    i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
+    matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
+) -> Link | None:
+    """Match and adjust one candidate pair; ``None`` where too few planes match."""
+    T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
+    matches = match_planes(planes_i, planes_j, T_prior, matching)
+    sigma = None
+    if matching.max_jump_m > 0 and _directions(matches, planes_i) < 3:
+        # Robust step: the trajectory may have jumped between the two scans, so that the planes
+        # across the jump no longer match (those along it still may).
+        tau = coarse_translation(planes_i, planes_j, T_prior, matching)
+        if tau is not None and np.linalg.norm(tau) > matching.max_offset_m:
+            shifted = Pose(np.array([1.0, 0, 0, 0]), tau).compose(T_prior)
+            realigned = match_planes(planes_i, planes_j, shifted, matching)
+            if (len(realigned) >= matching.min_matches
+                    and _directions(realigned, planes_i) > _directions(matches, planes_i)):
+                log.info("pair %s-%s: trajectory off by %.3f m; linked after a translation search",
+                         si.name, sj.name, float(np.linalg.norm(tau)))
+                matches, T_prior = realigned, shifted
+                loose = float(np.linalg.norm(tau)) + matching.max_offset_m
+                sigma = np.array([loose] * 3 + [np.radians(1.0)] * 3)
+    if len(matches) < matching.min_matches:
+        return None
+    if static is not None and ScanKind.STATIC in (si.kind, sj.kind):
+        sigma = np.array([static.prior_sigma_m] * 3 + [np.radians(static.prior_sigma_deg)] * 3)
+    return adjust_pair(i, j, planes_i, planes_j, T_prior, _dt(si, sj), matches, drift, pairwise, sigma_prior=sigma)
+
+
+# Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.
+_PAIRS_PER_TASK = 64
+
+
+def _link_batch(task: tuple) -> list[Link | None]:
+    """A batch of pairs (a top-level function: it runs on worker processes)."""
+    pairs, stations, planes, configs = task
+    return [link_pair(i, j, stations[i], stations[j], planes[i], planes[j], *configs) for i, j in pairs]
+
+
 def link_stations(
     stations: Sequence[Station],
     planes: Sequence[tuple[Plane, ...]],
@@ -69,44 +109,35 @@ def link_stations(
     pairwise: PairwiseConfig,
     progress: Progress | None = None,
     static: StaticConfig | None = None,
+    executor: ExecutorContext | None = None,
 ) -> list[Link]:
-    """Pairwise links over all candidate pairs (see :func:`station_pairs`).
-
-    ``planes[k]`` are the planes of ``stations[k]``. Pairs with fewer than
-    ``matching.min_matches`` plane matches are not linked. A pair with a static station has no
-    trajectory between them: its prior comes from ``static.prior_sigma_*``. Returns the links in
-    pair order.
+    """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
+    batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
+    with fewer than ``matching.min_matches`` plane matches are not linked. A pair with a static
+    station has no trajectory between them: its prior comes from ``static.prior_sigma_*``.
+    Returns the links in pair order, whatever the number of workers.
     """
     progress = progress or NullProgress()
     pairs = station_pairs(stations, matching, static)
-    links: list[Link] = []
-    progress.start("link", total=len(pairs), unit="pairs")
-    for i, j in pairs:
-        si, sj = stations[i], stations[j]
-        T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
-        matches = match_planes(planes[i], planes[j], T_prior, matching)
-        sigma = None
-        if matching.max_jump_m > 0 and _directions(matches, planes[i]) < 3:
-            # Robust step: the trajectory may have jumped between the two scans, so that the planes
-            # across the jump no longer match (those along it still may).
-            tau = coarse_translation(planes[i], planes[j], T_prior, matching)
-            if tau is not None and np.linalg.norm(tau) > matching.max_offset_m:
-                shifted = Pose(np.array([1.0, 0, 0, 0]), tau).compose(T_prior)
-                realigned = match_planes(planes[i], planes[j], shifted, matching)
-                if (len(realigned) >= matching.min_matches
-                        and _directions(realigned, planes[i]) > _directions(matches, planes[i])):
-                    log.info("pair %s-%s: trajectory off by %.3f m; linked after a translation search",
-                             si.name, sj.name, float(np.linalg.norm(tau)))
-                    matches, T_prior = realigned, shifted
-                    loose = float(np.linalg.norm(tau)) + matching.max_offset_m
-                    sigma = np.array([loose] * 3 + [np.radians(1.0)] * 3)
-        if len(matches) >= matching.min_matches:
-            if static is not None and ScanKind.STATIC in (si.kind, sj.kind):
-                sigma = np.array([static.prior_sigma_m] * 3 + [np.radians(static.prior_sigma_deg)] * 3)
-            links.append(adjust_pair(i, j, planes[i], planes[j], T_prior, _dt(si, sj), matches, drift, pairwise,
-                                     sigma_prior=sigma))
-        progress.advance(1)
+    configs = (matching, drift, pairwise, static)
+    batches = [pairs[k:k + _PAIRS_PER_TASK] for k in range(0, len(pairs), _PAIRS_PER_TASK)]
+    progress.start("link", total=len(batches), unit="batches")
+    if executor is None:
+        results = []
+        for batch in batches:
+            results.append(_link_batch((batch, stations, planes, configs)))
+            progress.advance(1)
+    else:
+        # Each task gets only the stations and planes of its own pairs.
+        def task(batch: list[tuple[int, int]]) -> tuple:
+            used = {k for pair in batch for k in pair}
+            sub_stations = {k: stations[k] for k in used}
+            sub_planes = {k: planes[k] for k in used}
+            return batch, sub_stations, sub_planes, configs
+
+        results = parallel_map(_link_batch, (task(b) for b in batches), executor, progress)
     progress.finish()
+    links = [link for batch in results for link in batch if link is not None]
     n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
     log.info("%d candidate pairs, %d links (%d rejected)", len(pairs), len(links), n_rejected)
     return links

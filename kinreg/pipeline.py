@@ -23,6 +23,7 @@ from kinreg.config import (
 )
 from kinreg.correction import DriftCorrection, write_corrected_las
 from kinreg.errors import ConfigError, EstimationError, OutputError
+from kinreg.executor import ExecutorContext, make_executor, parallel_map
 from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.cloud import open_cloud
@@ -147,23 +148,33 @@ def prepare_output_folder(out_dir: Path, overwrite: bool) -> None:
     check_writable_target(out_dir / "stations.csv", overwrite=True)
 
 
-def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig,
-                      progress: Progress) -> tuple[list[Station], list[tuple[Plane, ...]]]:
-    """Planes of every quasi-static scan, and the stations they belong to."""
-    stations: list[Station] = []
-    planes: list[tuple[Plane, ...]] = []
+def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[Station, tuple[Plane, ...]]:
+    """One scan's planes and its station (a top-level function: it runs on worker processes).
+    The task carries the sequence's small index (windows, spill paths), never the points."""
+    sequence, i, config = task
+    scan = sequence.read_scan(i)
+    found = detect_planes(scan, config)
+    tau = float("nan")
+    if scan.stamps_s is not None:
+        tau = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
+    station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
+                      scan.T_obj_scan, len(scan), tau)
+    return station, found
+
+
+def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progress: Progress,
+                      executor: ExecutorContext | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """Planes of every quasi-static scan, and the stations they belong to (on ``executor``; in this
+    process without one). The result does not depend on the number of workers."""
     progress.start("planes", total=len(sequence), unit="scans")
-    for scan in sequence.iter_scans():
-        found = detect_planes(scan, config)
-        tau = float("nan")
-        if scan.stamps_s is not None:
-            tau = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
-        stations.append(Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
-                                scan.T_obj_scan, len(scan), tau))
-        planes.append(found)
-        progress.advance(1)
+    tasks = ((sequence, i, config) for i in range(len(sequence)))
+    if executor is None:
+        results = [scan_planes(t) for t in tasks]
+        progress.advance(len(results))
+    else:
+        results = parallel_map(scan_planes, tasks, executor, progress)
     progress.finish()
-    return stations, planes
+    return [r[0] for r in results], [r[1] for r in results]
 
 
 def detect_static_planes(path: Path, first_id: int, config: PlanesConfig,
@@ -300,8 +311,14 @@ def process(
     config: KinregConfig,
     overwrite: bool = False,
     progress: Progress | None = None,
+    workers: int | None = 1,
+    scheduler: str | None = None,
 ) -> ProcessSummary:
-    """``kinreg process``: read, slice, detect planes, link, adjust, correct, report."""
+    """``kinreg process``: read, slice, detect planes, link, adjust, correct, report.
+
+    Per-scan and per-pair work runs on ``workers`` local processes (``None``: every core; 1: in
+    this process) or on the Dask cluster at ``scheduler``; results do not depend on either.
+    """
     from kinreg.io.e57 import write_e57_sequence
 
     progress = progress or NullProgress()
@@ -323,14 +340,15 @@ def process(
         sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
                                       progress=progress)
     lap("slice")
-    with sequence:
-        stations, planes = detect_all_planes(sequence, config.planes, progress)
+    with sequence, make_executor(workers, scheduler) as executor:
+        stations, planes = detect_all_planes(sequence, config.planes, progress, executor)
         if inputs.static is not None:
             static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes, progress)
             stations, planes = stations + static_stations, planes + static_planes
         lap("planes")
         static = config.static if inputs.static is not None else None
-        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static)
+        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
+                              executor)
         n_candidates = len(station_pairs(stations, config.matching, static))
         lap("link")
         network = adjust_network(stations, planes, links, references, static, config, progress)
@@ -415,6 +433,8 @@ def link_to_folder(
     config: KinregConfig,
     overwrite: bool = False,
     progress: Progress | None = None,
+    workers: int | None = 1,
+    scheduler: str | None = None,
 ) -> LinkSummary:
     """``kinreg link``: slice, detect planes, link the scans pairwise; write ``planes.csv`` (one row
     per plane and scan) and ``links.csv`` into ``out_dir``. No block adjustment."""
@@ -429,13 +449,14 @@ def link_to_folder(
         sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
                                       progress=progress)
     seconds["slice"] = time.perf_counter() - t0
-    with sequence:
+    with sequence, make_executor(workers, scheduler) as executor:
         t0 = time.perf_counter()
-        stations, planes = detect_all_planes(sequence, config.planes, progress)
+        stations, planes = detect_all_planes(sequence, config.planes, progress, executor)
         seconds["planes"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress)
-    seconds["link"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress,
+                              executor=executor)
+        seconds["link"] = time.perf_counter() - t0
     n_candidates = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), config.matching))
     write_text(out / "planes.csv", format_planes_csv(stations, planes), overwrite=overwrite)
     write_text(out / "links.csv", format_links_csv(links_table(links, None)), overwrite=overwrite)

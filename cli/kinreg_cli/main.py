@@ -31,6 +31,8 @@ console = Console(stderr=True)
 out = Console()
 
 CLOUD_SUFFIXES = {".las", ".laz", ".e57"}
+WORKERS_HELP = "Local worker processes for per-scan and per-pair work (default: every core; 1: none)."
+SCHEDULER_HELP = "Run per-scan and per-pair work on this Dask scheduler, e.g. tcp://host:8786."
 
 
 def _version(value: bool) -> None:
@@ -115,12 +117,15 @@ def link_command(
     config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
     window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing results.")] = False,
+    workers: Annotated[int | None, typer.Option("--workers", help=WORKERS_HELP)] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Slice, detect planes per scan and adjust every candidate pair (no block adjustment)."""
     from kinreg.pipeline import link_to_folder
 
     cfg = _config(config, {"slicing.window_s": window_s})
-    summary = link_to_folder(trajectory, cloud, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console))
+    summary = link_to_folder(trajectory, cloud, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console),
+                             workers=workers, scheduler=scheduler)
     table = Table(title=f"pairwise links in {out_dir}", show_header=False, title_justify="left")
     table.add_row("scans", f"{summary.n_scans}")
     table.add_row("planes", f"{summary.n_planes} ({summary.n_planes / max(summary.n_scans, 1):.1f} per scan)")
@@ -140,13 +145,15 @@ def process_command(
     config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
     window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing results.")] = False,
+    workers: Annotated[int | None, typer.Option("--workers", help=WORKERS_HELP)] = None,
+    scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Run everything: slice, planes, links, block adjustment, corrected outputs, reports."""
     from kinreg.pipeline import ProcessInputs, process
 
     cfg = _config(config, {"slicing.window_s": window_s})
     summary = process(ProcessInputs(trajectory, cloud, static, reference), out_dir, cfg, overwrite=overwrite,
-                      progress=RichProgress(console))
+                      progress=RichProgress(console), workers=workers, scheduler=scheduler)
     table = Table(title=f"kinreg results in {out_dir}", show_header=False, title_justify="left")
     table.add_column("", style="bold")
     table.add_column("")
