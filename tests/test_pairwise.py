@@ -145,3 +145,22 @@ def test_candidate_pairs_sequence_and_loop_closures():
     positions = np.array([[0, 0, 0], [5, 0, 0], [10, 0, 0], [15, 0, 0], [20, 0, 0], [0.5, 0.5, 0]], float)
     cfg = MatchingConfig(neighbour_depth=1, radius_m=2.0)
     assert candidate_pairs(positions, cfg) == [(0, 1), (0, 5), (1, 2), (2, 3), (3, 4), (4, 5)]
+
+
+def test_repeated_and_looped_matches_do_not_break_the_adjustment():
+    """Two patches of one wall in each scan, all four cross-matched (a closed loop of conditions,
+    seen in a seed-scale run), plus a match stated twice: Q_ww is singular, the adjustment copes."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(9)
+    planes_i, planes_j, T_true, T_prior = make_pair(rng)
+    extra_i = replace(planes_i[0], plane_id=100)  # a second patch of the same wall
+    extra_j = replace(planes_j[0], plane_id=100)
+    planes_i, planes_j = (*planes_i, extra_i), (*planes_j, extra_j)
+    matches = list(match_planes(planes_i, planes_j, T_prior, MATCH))
+    loop = [PlaneMatch(a, b, 0.0, 0.0, 1.0) for a in (0, 100) for b in (0, 100)]
+    matches = [m for m in matches if m.plane_i not in (0, 100)] + loop + loop[:1]
+    link = adjust_pair(0, 1, planes_i, planes_j, T_prior, 6.0, tuple(matches), DRIFT, PAIR)
+    assert link.status is LinkStatus.OK
+    e = error_twist(link.T_i_j, T_true)
+    assert e @ np.linalg.solve(link.cov_xi, e) < stats.chi2.ppf(0.999, 6)
