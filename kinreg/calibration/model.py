@@ -44,7 +44,7 @@ from scipy.sparse.linalg import splu
 from scipy.stats import chi2
 
 from kinreg.calibration.arrangement import projected_variance
-from kinreg.errors import EstimationError, InputError
+from kinreg.errors import ConfigError, EstimationError, InputError
 from kinreg.geometry import (
     FloatArray,
     Pose,
@@ -575,5 +575,6 @@ def calibrate_with_gating(points_s: ArrayLike, stamps_s: ArrayLike, trajectory: 
         logger.info("gate %.4f m: %d of %d points assigned", gate, int(np.sum(index >= 0)), len(P))
         result = estimate_calibration(P, t, index, trajectory, planes, current, config)
         current = result.calibration
-    assert result is not None
+    if result is None:
+        raise ConfigError("no gate given: gating needs at least one distance")
     return result, index
