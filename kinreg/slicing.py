@@ -5,7 +5,7 @@ is the trajectory row nearest the window's middle, and the window's points are e
 frame: ``p_scan = T_obj_scan^-1 p_obj``. The geometry is unchanged, only the parametrisation.
 
 The cloud is streamed once. Each point goes to the spill file of its window in a temporary folder
-(float64 object-frame coordinates, float64 time, float32 intensity: 36 bytes a point), so memory
+(float32 offsets from the window's origin, float64 time, float32 intensity: 24 bytes a point), so memory
 stays bounded whatever the cloud's size and whether or not it is time-sorted. Scans are then
 handed out one at a time.
 """
@@ -33,7 +33,10 @@ from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, Trajectory
 
 log = logging.getLogger(__name__)
 
-SPILL_RECORD = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("t", "<f8"), ("intensity", "<f4")])
+# Coordinates are float32 offsets from the unit's origin (the trajectory position at the unit's
+# middle): points within a few hundred metres of it keep better than 0.02 mm, and the spill
+# (the slicing stage's disk traffic) is a third smaller than with float64 coordinates.
+SPILL_RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f8"), ("intensity", "<f4")])
 
 # In POINTS mode the cloud is first spilled into bins of this length; windows are then formed
 # from consecutive bins, so the point counts need no extra pass over the cloud.
@@ -113,9 +116,10 @@ def _group_point_bins(counts: np.ndarray, target: int) -> list[tuple[int, int]]:
 class _SpillWriter:
     """Appends point records to one file per unit, keeping a bounded number of files open."""
 
-    def __init__(self, folder: Path, n_units: int) -> None:
+    def __init__(self, folder: Path, origins: FloatArray) -> None:
         self.folder = folder
-        self.counts = np.zeros(n_units, dtype=np.int64)
+        self.origins = origins  # (n_units, 3) object-frame origin of each unit's offsets
+        self.counts = np.zeros(len(origins), dtype=np.int64)
         self._open: OrderedDict[int, BinaryIO] = OrderedDict()
 
     def path(self, unit: int) -> Path:
@@ -138,8 +142,8 @@ class _SpillWriter:
         self._open.clear()
 
 
-def _records(chunk: CloudChunk, stamps_s: FloatArray, index: np.ndarray | slice) -> np.ndarray:
-    xyz = chunk.xyz[index]
+def _records(chunk: CloudChunk, stamps_s: FloatArray, index: np.ndarray | slice, origin: FloatArray) -> np.ndarray:
+    xyz = chunk.xyz[index] - origin
     rec = np.empty(len(xyz), dtype=SPILL_RECORD)
     rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     rec["t"] = stamps_s[index]
@@ -179,10 +183,11 @@ class QuasiStaticSequence:
         """Scan ``i``: its points in its own frame (float64), times, intensities."""
         w = self.windows[i]
         a, b = self._unit_ranges[i]
-        parts = [np.fromfile(self._store.path(u), dtype=SPILL_RECORD)
-                 for u in range(a, b) if self._store.counts[u]]
+        units = [u for u in range(a, b) if self._store.counts[u]]
+        parts = [np.fromfile(self._store.path(u), dtype=SPILL_RECORD) for u in units]
         rec = np.concatenate(parts) if len(parts) != 1 else parts[0]
-        xyz_obj = np.column_stack([rec["x"], rec["y"], rec["z"]])
+        origin = np.repeat(self._store.origins[units], [len(p) for p in parts], axis=0)
+        xyz_obj = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64) + origin
         return Scan(
             scan_id=w.scan_id,
             name=w.name,
@@ -237,7 +242,8 @@ def slice_quasi_static(
         where = base or tempfile.gettempdir()
         raise ConfigError(f"[slicing] temp_dir: cannot create the spill folder: {e.strerror or e}",
                           where) from None
-    store = _SpillWriter(folder, n_units)
+    mid = 0.5 * (edges[:-1] + edges[1:])
+    store = _SpillWriter(folder, trajectory.pose_at(np.clip(mid, trajectory.t_start_s, trajectory.t_end_s)).t_xyz)
     n_read = n_outside = 0
     try:
         progress.start("slice", total=cloud.info.n_points, unit="points")
@@ -337,4 +343,5 @@ def _spill_chunk(store: _SpillWriter, chunk: CloudChunk, stamps_s: FloatArray, u
     stops = np.concatenate([cuts, [len(sorted_unit)]])
     for a, b in zip(starts, stops, strict=True):
         index = slice(a, b) if order is None else order[a:b]
-        store.append(int(sorted_unit[a]), _records(chunk, stamps_s, index))
+        unit = int(sorted_unit[a])
+        store.append(unit, _records(chunk, stamps_s, index, store.origins[unit]))
