@@ -22,7 +22,15 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from kinreg.errors import CloudError
-from kinreg.geometry import FloatArray, Pose, quat_multiply, quat_normalize, quat_to_rotvec, rotvec_to_quat
+from kinreg.geometry import (
+    FloatArray,
+    Pose,
+    interpolate_positions,
+    quat_multiply,
+    quat_normalize,
+    quat_to_rotvec,
+    rotvec_to_quat,
+)
 from kinreg.io.atomic import atomic_path
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import Trajectory
@@ -57,20 +65,10 @@ class DriftCorrection:
     def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
         """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,)."""
         rotvec, delta = self._at(stamps_s)
-        pivot = self._positions_at(stamps_s)
+        # The pivot needs the trajectory's positions only: no per-point SLERP (most of the time).
+        pivot = interpolate_positions(self.trajectory.stamps_s, self.trajectory.poses.t_xyz, stamps_s)
         R = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix
         return np.einsum("nij,nj->ni", R, xyz - pivot) + pivot + delta
-
-    def _positions_at(self, query_s: FloatArray) -> FloatArray:
-        """The trajectory's positions at ``query_s`` (clamped to its range): the translation part
-        of :func:`kinreg.geometry.interpolate_poses`, same formula and rounding, without the
-        per-point SLERP that the pivot does not need (it was most of the correction's time)."""
-        s = self.trajectory.stamps_s
-        p = self.trajectory.poses.t_xyz
-        q = np.clip(np.asarray(query_s, dtype=np.float64), s[0], s[-1])
-        i = np.clip(np.searchsorted(s, q, side="right") - 1, 0, len(s) - 2)
-        u = np.clip((q - s[i]) / (s[i + 1] - s[i]), 0.0, 1.0)
-        return p[i] + u[..., None] * (p[i + 1] - p[i])
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""

@@ -71,6 +71,11 @@ class ExecutorContext:
         return self.executor.map(fn, iterable)
 
 
+def in_process() -> ExecutorContext:
+    """The executor that runs every task in this process (the default of the stages)."""
+    return ExecutorContext(InProcessExecutor(), 1, "in-process")
+
+
 def default_workers() -> int:
     """The cores this process may use (the affinity mask, not the machine's count)."""
     try:
@@ -100,7 +105,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
     if n < 1:
         raise ConfigError(f"workers must be at least 1, got {n}")
     if n == 1:
-        yield ExecutorContext(InProcessExecutor(), 1, "in-process")
+        yield in_process()
         return
     pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context())
     try:

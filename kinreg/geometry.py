@@ -342,13 +342,26 @@ def interpolate_poses(stamps_s: ArrayLike, poses: Pose, query_s: ArrayLike) -> P
     ``stamps_s`` must be strictly increasing and cover ``query_s`` (the caller checks the range;
     values outside are extrapolated from the end segment's nearest pose, i.e. clamped).
     """
-    s = _as_float(stamps_s)
-    q = _as_float(query_s)
-    i = np.clip(np.searchsorted(s, q, side="right") - 1, 0, len(s) - 2)
-    u = np.clip((q - s[i]) / (s[i + 1] - s[i]), 0.0, 1.0)
+    i, u = _segments(stamps_s, query_s)
     t = poses.t_xyz[i] + u[..., None] * (poses.t_xyz[i + 1] - poses.t_xyz[i])
     quat = quat_slerp(poses.quat_wxyz[i], poses.quat_wxyz[i + 1], u)
     return Pose(quat, t)
+
+
+def interpolate_positions(stamps_s: ArrayLike, xyz: ArrayLike, query_s: ArrayLike) -> FloatArray:
+    """The position part of :func:`interpolate_poses` alone (no SLERP): same segments, same
+    rounding, clamped outside the range."""
+    i, u = _segments(stamps_s, query_s)
+    p = _as_float(xyz)
+    return p[i] + u[..., None] * (p[i + 1] - p[i])
+
+
+def _segments(stamps_s: ArrayLike, query_s: ArrayLike) -> tuple[np.ndarray, FloatArray]:
+    """Segment index and fraction (clamped to [0, 1]) of each query time."""
+    s = _as_float(stamps_s)
+    q = _as_float(query_s)
+    i = np.clip(np.searchsorted(s, q, side="right") - 1, 0, len(s) - 2)
+    return i, np.clip((q - s[i]) / (s[i + 1] - s[i]), 0.0, 1.0)
 
 
 def tangent_basis(normal: ArrayLike) -> FloatArray:

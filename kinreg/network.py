@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
-from kinreg.executor import ExecutorContext, parallel_map
+from kinreg.executor import ExecutorContext, in_process, parallel_map
 from kinreg.geometry import Pose, quat_to_rotvec
 from kinreg.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.pairwise import adjust_pair
@@ -122,20 +122,13 @@ def link_stations(
     configs = (matching, drift, pairwise, static)
     batches = [pairs[k:k + _PAIRS_PER_TASK] for k in range(0, len(pairs), _PAIRS_PER_TASK)]
     progress.start("link", total=len(batches), unit="batches")
-    if executor is None:
-        results = []
-        for batch in batches:
-            results.append(_link_batch((batch, stations, planes, configs)))
-            progress.advance(1)
-    else:
-        # Each task gets only the stations and planes of its own pairs.
-        def task(batch: list[tuple[int, int]]) -> tuple:
-            used = {k for pair in batch for k in pair}
-            sub_stations = {k: stations[k] for k in used}
-            sub_planes = {k: planes[k] for k in used}
-            return batch, sub_stations, sub_planes, configs
 
-        results = parallel_map(_link_batch, (task(b) for b in batches), executor, progress)
+    def task(batch: list[tuple[int, int]]) -> tuple:
+        # Each task gets only the stations and planes of its own pairs.
+        used = {k for pair in batch for k in pair}
+        return batch, {k: stations[k] for k in used}, {k: planes[k] for k in used}, configs
+
+    results = parallel_map(_link_batch, (task(b) for b in batches), executor or in_process(), progress)
     progress.finish()
     links = [link for batch in results for link in batch if link is not None]
     n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)

@@ -23,7 +23,7 @@ from kinreg.config import (
 )
 from kinreg.correction import DriftCorrection, write_corrected_las
 from kinreg.errors import ConfigError, EstimationError, OutputError
-from kinreg.executor import ExecutorContext, make_executor, parallel_map
+from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
 from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.cloud import open_cloud
@@ -76,6 +76,17 @@ def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
     return read_trajectory(path, fmt, columns)
 
 
+def read_and_slice(
+    trajectory_path: str | Path, cloud_path: str | Path, config: KinregConfig, progress: Progress
+) -> tuple[Trajectory, int, QuasiStaticSequence]:
+    """The input trajectory, the cloud's point count, and the cloud sliced into quasi-static scans."""
+    trajectory = read_input_trajectory(trajectory_path, config.input)
+    with open_cloud(cloud_path) as cloud:
+        sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
+                                      progress=progress)
+        return trajectory, cloud.info.n_points, sequence
+
+
 def _counted(scans: Iterator[Scan], progress: Progress, stage: str, total: int) -> Iterator[Scan]:
     progress.start(stage, total=total, unit="scans")
     for scan in scans:
@@ -97,11 +108,7 @@ def slice_to_e57(
 
     progress = progress or NullProgress()
     check_writable_target(Path(out_path), overwrite)  # fail before the long work, not after
-    trajectory = read_input_trajectory(trajectory_path, config.input)
-    with open_cloud(cloud_path) as cloud:
-        sequence: QuasiStaticSequence = slice_quasi_static(
-            trajectory, cloud, config.slicing, config.input.chunk_points, progress=progress
-        )
+    _, _, sequence = read_and_slice(trajectory_path, cloud_path, config, progress)
     with sequence:
         scans = _counted(sequence.iter_scans(), progress, "export E57", len(sequence))
         write_e57_sequence(out_path, scans, overwrite=overwrite)
@@ -168,11 +175,7 @@ def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progr
     process without one). The result does not depend on the number of workers."""
     progress.start("planes", total=len(sequence), unit="scans")
     tasks = ((sequence, i, config) for i in range(len(sequence)))
-    if executor is None:
-        results = [scan_planes(t) for t in tasks]
-        progress.advance(len(results))
-    else:
-        results = parallel_map(scan_planes, tasks, executor, progress)
+    results = parallel_map(scan_planes, tasks, executor or in_process(), progress)
     progress.finish()
     return [r[0] for r in results], [r[1] for r in results]
 
@@ -334,11 +337,7 @@ def process(
 
     prepare_output_folder(out, overwrite)
     references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
-    trajectory = read_input_trajectory(inputs.trajectory, config.input)
-    with open_cloud(inputs.cloud) as cloud:
-        n_points_input = cloud.info.n_points
-        sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
-                                      progress=progress)
+    trajectory, n_points_input, sequence = read_and_slice(inputs.trajectory, inputs.cloud, config, progress)
     lap("slice")
     with sequence, make_executor(workers, scheduler) as executor:
         stations, planes = detect_all_planes(sequence, config.planes, progress, executor)
@@ -444,10 +443,7 @@ def link_to_folder(
     check_writable_target(out / "planes.csv", overwrite)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    trajectory = read_input_trajectory(trajectory_path, config.input)
-    with open_cloud(cloud_path) as cloud:
-        sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
-                                      progress=progress)
+    _, _, sequence = read_and_slice(trajectory_path, cloud_path, config, progress)
     seconds["slice"] = time.perf_counter() - t0
     with sequence, make_executor(workers, scheduler) as executor:
         t0 = time.perf_counter()

@@ -142,7 +142,8 @@ class _SpillWriter:
         self._open.clear()
 
 
-def _records(chunk: CloudChunk, stamps_s: FloatArray, index: np.ndarray | slice, origin: FloatArray) -> np.ndarray:
+def _records(chunk: CloudChunk, stamps_s: FloatArray, index: np.ndarray | slice,
+             origin: FloatArray) -> np.ndarray:
     xyz = chunk.xyz[index] - origin
     rec = np.empty(len(xyz), dtype=SPILL_RECORD)
     rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
@@ -343,5 +344,5 @@ def _spill_chunk(store: _SpillWriter, chunk: CloudChunk, stamps_s: FloatArray, u
     stops = np.concatenate([cuts, [len(sorted_unit)]])
     for a, b in zip(starts, stops, strict=True):
         index = slice(a, b) if order is None else order[a:b]
-        unit = int(sorted_unit[a])
-        store.append(unit, _records(chunk, stamps_s, index, store.origins[unit]))
+        target = int(sorted_unit[a])
+        store.append(target, _records(chunk, stamps_s, index, store.origins[target]))
