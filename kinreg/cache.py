@@ -37,7 +37,7 @@ import logging
 import os
 import shutil
 import zipfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -168,11 +168,34 @@ class StageCache:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
 
+    def prune(self, keep: Iterable[tuple[str, str]]) -> int:
+        """Delete every committed entry (and large-output folder) whose ``(stage, key)`` is not
+        in ``keep``; return how many were deleted. Files that are not cache entries are left."""
+        keep = set(keep)
+        removed = 0
+        if not self.folder.is_dir():
+            return 0
+        for stage_dir in self.folder.iterdir():
+            if not stage_dir.is_dir() or stage_dir.name.startswith("."):
+                continue
+            for path in stage_dir.iterdir():
+                key = path.name.split(".", 1)[0]
+                if path.name.startswith(".") or not key.isalnum() or (stage_dir.name, key) in keep:
+                    continue
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path, ignore_errors=True)
+                elif path.suffix in (".npz", ".json"):
+                    path.unlink(missing_ok=True)
+                else:
+                    continue
+                removed += path.suffix != ".npz"  # one per entry: its sidecar (or its folder)
+        return removed
+
     def remove_stale(self) -> None:
         """Delete temporary files left by killed runs (``.*.tmp-<pid>`` of dead processes)."""
         if not self.folder.is_dir():
             return
-        for path in self.folder.glob("*/.*.tmp-*"):
+        for path in [*self.folder.glob(".*.tmp-*"), *self.folder.glob("*/.*.tmp-*")]:
             pid = path.name.rsplit("-", 1)[-1]
             if pid.isdigit() and not _alive(int(pid)):
                 if path.is_dir():

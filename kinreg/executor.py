@@ -12,6 +12,16 @@ Dask distributed cluster. Only :mod:`concurrent.futures` executors; no scheduler
 - ``scheduler="tcp://host:8786"``: ``dask.distributed.Client(address).get_executor()``; dask is
   imported only then (the optional extra ``kinreg[dask]``).
 
+One thread per local worker: N workers already keep N cores busy, so each worker limits BLAS
+(OpenBLAS, MKL, BLIS), OpenMP (open3d) and numexpr to one thread (:data:`THREAD_VARIABLES`);
+otherwise every worker would start a pool per core and they would fight over the cores. The
+variables must be set before a worker loads those libraries, so they are set in the forkserver
+itself (its only preloaded module is :mod:`kinreg._worker_threads`; ``__main__`` is not
+preloaded), and again in each worker's initialiser, which also limits pools already loaded
+when ``threadpoolctl`` is installed. The calling process is left as it is: in-process runs
+(``workers=1``) keep every BLAS thread. Dask workers are configured by their cluster (Dask's
+nanny already sets these variables to 1).
+
 The functions given to :func:`parallel_map` must be importable top-level functions of a module
 (not lambdas, closures or functions defined in ``__main__`` of a script run by a worker), and
 their arguments and results must be picklable: process pools and Dask move them between
@@ -41,6 +51,22 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 R = TypeVar("R")
+
+# Environment variables that size the thread pools of the numerical libraries in a worker.
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+                    "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def limit_worker_threads() -> None:
+    """Initialiser of every local worker process: one BLAS/OpenMP thread (see the module
+    docstring). Never called in the calling process."""
+    for name in THREAD_VARIABLES:
+        os.environ[name] = "1"
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
+        return
+    threadpool_limits(limits=1)  # pools of libraries this worker loaded before the variables were set
 
 
 class InProcessExecutor(Executor):
@@ -86,7 +112,14 @@ def default_workers() -> int:
 
 def _mp_context() -> multiprocessing.context.BaseContext:
     methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    if "forkserver" not in methods:
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    # Effective when this starts the forkserver (the first pool of the process): workers are forked
+    # from a server that has set the thread variables and has not loaded numpy (nor __main__, which
+    # may import it).
+    context.set_forkserver_preload(["kinreg._worker_threads"])
+    return context
 
 
 @contextmanager
@@ -107,7 +140,7 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
     if n == 1:
         yield in_process()
         return
-    pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context())
+    pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context(), initializer=limit_worker_threads)
     try:
         yield ExecutorContext(pool, n, "processes")
     finally:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from kinreg.block import adjust_block, loose_parts
+from kinreg.cache import links_from_arrays, links_to_arrays
 from kinreg.config import (
     Disconnected,
     InputConfig,
@@ -22,7 +23,7 @@ from kinreg.config import (
     format_toml,
 )
 from kinreg.correction import DriftCorrection, write_corrected_las
-from kinreg.errors import ConfigError, EstimationError, OutputError
+from kinreg.errors import ConfigError, EstimationError
 from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
 from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
@@ -42,7 +43,7 @@ from kinreg.network import (
 )
 from kinreg.planes import detect_planes
 from kinreg.progress import NullProgress, Progress
-from kinreg.reference import Tie, as_built, associate, tie_observations
+from kinreg.reference import Tie, as_built, associate, tie_observations, to_reference_frame
 from kinreg.report import (
     build_report,
     format_links_csv,
@@ -54,6 +55,17 @@ from kinreg.report import (
     write_text,
 )
 from kinreg.report_html import render_html
+from kinreg.resume import (
+    CachedSlices,
+    RunCache,
+    content_parts,
+    dataclass_parts,
+    open_run_cache,
+    remove_outputs,
+    scan_planes_from_arrays,
+    scan_planes_to_arrays,
+    sliced_run,
+)
 from kinreg.slicing import QuasiStaticSequence, SlicingSummary, slice_quasi_static
 from kinreg.types import (
     BlockResult,
@@ -140,19 +152,21 @@ class ProcessSummary:
     gaps_max_mm: float
     n_rejected: int
     timings_s: dict[str, float]
+    # per stage: {"reused": n, "computed": m} items (scans, files) of this run
+    stage_cache: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
 
 
 OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "corrected.laz", "sequence.e57",
                 "report.json", "report.html", "config.toml")
 
 
-def prepare_output_folder(out_dir: Path, overwrite: bool) -> None:
-    """Create the output folder; refuse one that already holds kinreg outputs unless ``overwrite``."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputError("exists and is not a folder", out_dir)
-    if out_dir.is_dir() and not overwrite and any((out_dir / name).exists() for name in OUTPUT_FILES):
-        raise OutputError("already holds kinreg results; use --overwrite to replace them", out_dir)
+def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False) -> RunCache:
+    """Create the output folder and open its stage cache. A folder that already holds kinreg
+    results or a stage cache is refused unless ``resume`` (re-use the cache) or ``overwrite``
+    (start afresh: the cache is cleared); see :func:`kinreg.resume.open_run_cache`."""
+    run = open_run_cache(out_dir, OUTPUT_FILES, overwrite=overwrite, resume=resume)
     check_writable_target(out_dir / "stations.csv", overwrite=True)
+    return run
 
 
 def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[Station, tuple[Plane, ...]]:
@@ -180,25 +194,84 @@ def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progr
     return [r[0] for r in results], [r[1] for r in results]
 
 
-def detect_static_planes(path: Path, first_id: int, config: PlanesConfig,
-                         progress: Progress) -> tuple[list[Station], list[tuple[Plane, ...]]]:
-    """Planes of every static scan of a registered E57 (poses in the object frame required)."""
-    from kinreg.io.e57 import iter_e57_scans, list_e57_scans
+def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: Progress,
+                         executor: ExecutorContext, run: RunCache) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """:func:`detect_all_planes` through the stage cache: each scan is looked up under (slice
+    key, scan index, ``[planes]``); the others are detected and stored as each finishes, so that
+    an interrupted run keeps the scans it finished. The points are read only when a scan is missing."""
+    keys = [run.key("planes", slices.key, i, config) for i in range(len(slices))]
+    results: list[tuple[Station, tuple[Plane, ...]] | None] = []
+    for key in keys:
+        entry = run.load("planes", key)
+        results.append(None if entry is None else scan_planes_from_arrays(entry.arrays))
+    missing = [i for i, r in enumerate(results) if r is None]
+    run.count("planes", reused=len(keys) - len(missing), computed=len(missing))
+    if len(missing) < len(keys):
+        log.info("planes: %d of %d scans re-used from the stage cache", len(keys) - len(missing), len(keys))
+    sequence = slices.sequence() if missing else None  # points are read only for scans not in the cache
+
+    def keep(index: int, result: tuple[Station, tuple[Plane, ...]]) -> None:
+        run.store("planes", keys[missing[index]], scan_planes_to_arrays(*result))
+        results[missing[index]] = result
+
+    progress.start("planes", total=len(keys), unit="scans")
+    progress.advance(len(keys) - len(missing))
+    if sequence is not None:
+        parallel_map(scan_planes, ((sequence, i, config) for i in missing), executor, progress, on_result=keep)
+    progress.finish()
+    done = [r for r in results if r is not None]
+    return [r[0] for r in done], [r[1] for r in done]
+
+
+def detect_static_planes(path: Path, first_id: int, config: PlanesConfig, progress: Progress,
+                         run: RunCache | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """Planes of every static scan of a registered E57 (poses in the object frame required).
+    With ``run``, each scan is looked up in (and stored into) its stage cache."""
+    from kinreg.io.e57 import list_e57_scans, read_e57_scan
 
     headers = list_e57_scans(path)
     stations: list[Station] = []
     planes: list[tuple[Plane, ...]] = []
     progress.start("static planes", total=len(headers), unit="scans")
-    for k, scan in enumerate(iter_e57_scans(path, require_pose=True)):
-        scan = replace(scan, scan_id=first_id + k)
-        found = tuple(replace(p, scan_id=scan.scan_id) for p in detect_planes(scan, config))
-        nan = float("nan")
-        stations.append(Station(scan.scan_id, scan.name or f"static_{k:03d}", ScanKind.STATIC, nan, nan, nan,
-                                scan.T_obj_scan, len(scan)))
+    for k in range(len(headers)):
+        key = run.key("static-planes", path, k, first_id, config) if run is not None else ""
+        entry = run.load("static-planes", key) if run is not None else None
+        if entry is not None:
+            station, found = scan_planes_from_arrays(entry.arrays)
+        else:
+            scan = replace(read_e57_scan(path, k, require_pose=True), scan_id=first_id + k)
+            found = tuple(replace(p, scan_id=scan.scan_id) for p in detect_planes(scan, config))
+            nan = float("nan")
+            station = Station(scan.scan_id, scan.name or f"static_{k:03d}", ScanKind.STATIC, nan, nan, nan,
+                              scan.T_obj_scan, len(scan))
+        if run is not None:
+            if entry is None:
+                run.store("static-planes", key, scan_planes_to_arrays(station, found))
+            run.count("static planes", reused=int(entry is not None), computed=int(entry is None))
+        stations.append(station)
         planes.append(found)
         progress.advance(1)
     progress.finish()
     return stations, planes
+
+
+def link_stations_cached(stations: list[Station], planes: list[tuple[Plane, ...]], config: KinregConfig,
+                         static: StaticConfig | None, progress: Progress, executor: ExecutorContext,
+                         run: RunCache) -> list[Link]:
+    """:func:`~kinreg.network.link_stations` through the stage cache, keyed by the stations and
+    planes themselves (so also by anything that moved them, e.g. ``[initial_transform]``) and
+    ``[matching]``, ``[drift]``, ``[pairwise]``, ``[static]``."""
+    key = run.key("link", *content_parts(stations, planes), config.matching, config.drift, config.pairwise, static)
+    entry = run.load("link", key)
+    if entry is not None:
+        run.count("link", reused=1)
+        log.info("link: the pairwise links are re-used from the stage cache")
+        return links_from_arrays(entry.arrays)
+    links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
+                          executor)
+    run.store("link", key, links_to_arrays(links))
+    run.count("link", computed=1)
+    return links
 
 
 @dataclass(frozen=True, eq=False)
@@ -241,7 +314,8 @@ def adjust_network(
         ties = associate([s.name for s in stations], poses_initial, planes, references, config.reference)
         if not ties:
             raise ConfigError("no detected plane could be tied to a reference plane (is the trajectory in the "
-                              "building's frame? give [[link]] entries otherwise)", references.source)
+                              "building's frame? give [initial_transform] or [[link]] entries otherwise)",
+                              references.source)
         datum_obs += tie_observations(ties, poses_initial, planes, references, config.reference)
         datum.append(f"reference planes ({len(ties)} tie planes)")
     if not datum:
@@ -316,11 +390,18 @@ def process(
     progress: Progress | None = None,
     workers: int | None = 1,
     scheduler: str | None = None,
+    resume: bool = False,
 ) -> ProcessSummary:
     """``kinreg process``: read, slice, detect planes, link, adjust, correct, report.
 
     Per-scan and per-pair work runs on ``workers`` local processes (``None``: every core; 1: in
     this process) or on the Dask cluster at ``scheduler``; results do not depend on either.
+
+    Each stage keeps its results in the output folder's stage cache (:mod:`kinreg.resume`). A
+    folder that holds results or a cache is refused, unless ``resume`` (re-use the cache: only
+    stages whose inputs changed are done again, and the outputs are rewritten) or ``overwrite``
+    (start afresh). A run killed at any point and resumed gives the same outputs as one that ran
+    through.
     """
     from kinreg.io.e57 import write_e57_sequence
 
@@ -335,23 +416,29 @@ def process(
         timings[stage] = now - clock
         clock = now
 
-    prepare_output_folder(out, overwrite)
+    run = prepare_output_folder(out, overwrite, resume)
     references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
-    trajectory, n_points_input, sequence = read_and_slice(inputs.trajectory, inputs.cloud, config, progress)
-    lap("slice")
-    with sequence, make_executor(workers, scheduler) as executor:
-        stations, planes = detect_all_planes(sequence, config.planes, progress, executor)
+    trajectory = read_input_trajectory(inputs.trajectory, config.input)
+    if inputs.cloud.suffix.lower() not in (".las", ".laz"):
+        raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", inputs.cloud)
+    with sliced_run(run, inputs.trajectory, inputs.cloud, trajectory, config, progress) as slices, \
+            make_executor(workers, scheduler) as executor:
+        n_points_input = slices.n_points_input
+        lap("slice")
+        stations, planes = detect_planes_cached(slices, config.planes, progress, executor, run)
+        stations, trajectory = to_reference_frame(stations, trajectory, references)  # [initial_transform]
         if inputs.static is not None:
-            static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes, progress)
+            static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes,
+                                                                  progress, run)
             stations, planes = stations + static_stations, planes + static_planes
         lap("planes")
         static = config.static if inputs.static is not None else None
-        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
-                              executor)
+        links = link_stations_cached(stations, planes, config, static, progress, executor, run)
         n_candidates = len(station_pairs(stations, config.matching, static))
         lap("link")
         network = adjust_network(stations, planes, links, references, static, config, progress)
         result, rates = network.result, network.rates
+        run.count("block", computed=1)
         lap("block")
         quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])
         poses_initial = result.poses_initial
@@ -359,17 +446,30 @@ def process(
         correction = DriftCorrection.from_stations(station_times[quasi], poses_initial[quasi], result.poses[quasi],
                                                    trajectory)
         corrected_trajectory = correction.apply_to_trajectory(trajectory)
+        # The large outputs are keyed by what they are made of; one still in the folder is kept.
+        T_obj_cloud = None if references is None else references.T_ref_traj
+        cloud_key = run.key("output", "corrected.laz", inputs.cloud, config.input.chunk_points, T_obj_cloud,
+                            *dataclass_parts(correction))
+        sequence_key = run.key("output", "sequence.e57", slices.key, result.poses[np.arange(len(slices))])
+        current = {name for name, key in (("corrected.laz", cloud_key), ("sequence.e57", sequence_key))
+                   if run.output_is_current(name, key)}
+        remove_outputs(out, tuple(name for name in OUTPUT_FILES if name not in current))
         write_trajectory_geoslam(out / "trajectory_corrected.txt", corrected_trajectory, overwrite=True)
-        if inputs.cloud.suffix.lower() in (".las", ".laz"):
+        if "corrected.laz" not in current:
             write_corrected_las(inputs.cloud, out / "corrected.laz", correction, config.input.chunk_points,
-                                overwrite=True, progress=progress)
-        else:
-            raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", inputs.cloud)
+                                overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud)
+            run.record_output("corrected.laz", cloud_key)
+        run.count("corrected cloud", reused=int("corrected.laz" in current),
+                  computed=int("corrected.laz" not in current))
         lap("corrected cloud")
-        scans = _counted(_adjusted_scans(sequence, result.poses), progress, "write E57", len(sequence))
-        write_e57_sequence(out / "sequence.e57", scans, overwrite=True)
+        if "sequence.e57" not in current:
+            sequence = slices.sequence()
+            scans = _counted(_adjusted_scans(sequence, result.poses), progress, "write E57", len(sequence))
+            write_e57_sequence(out / "sequence.e57", scans, overwrite=True)
+            run.record_output("sequence.e57", sequence_key)
+        run.count("sequence E57", reused=int("sequence.e57" in current), computed=int("sequence.e57" not in current))
         lap("sequence E57")
-        slicing_summary = sequence.summary
+        slicing_summary = slices.summary
 
     shift, rot = correction.magnitude()
     config_toml = format_toml(config)
@@ -391,15 +491,16 @@ def process(
     if references is not None:
         report["reference"] = {"accuracy_m": references.accuracy_m, "n_ties": len(network.ties),
                                "planes": as_built(network.ties, result.poses, planes, references)}
+    report["stage_cache"] = run.summary()
     rows = stations_table(stations, result, planes, links)
     write_text(out / "stations.csv", format_stations_csv(rows))
     write_text(out / "links.csv", format_links_csv(links_table(links, result)))
     write_text(out / "config.toml", config_toml)
-    write_report_json(out / "report.json", report)
     write_text(out / "report.html", render_html(report))
     lap("reports")
     report["timings_s"] = timings
-    write_report_json(out / "report.json", report)
+    write_report_json(out / "report.json", report)  # last: it marks a finished run
+    run.finish()
     return ProcessSummary(
         out_dir=out,
         n_stations=len(stations),
@@ -412,6 +513,7 @@ def process(
         gaps_max_mm=report["before_after"]["gaps_mm"]["max"],
         n_rejected=len(report["adjustment"]["rejected_observations"]),
         timings_s=timings,
+        stage_cache=run.summary(),
     )
 
 

@@ -8,6 +8,11 @@ The cloud is streamed once. Each point goes to the spill file of its window in a
 (float32 offsets from the window's origin, float64 time, float32 intensity: 24 bytes a point), so memory
 stays bounded whatever the cloud's size and whether or not it is time-sorted. Scans are then
 handed out one at a time.
+
+A finished spill can be reopened (:meth:`QuasiStaticSequence.reopen`) from its small index
+(:meth:`QuasiStaticSequence.index_arrays`, plain arrays for the stage cache): ``kinreg process
+--resume`` does so after an interrupted run instead of streaming the cloud again. A spill folder
+is complete only when it holds the ``.complete`` mark, written after the last point.
 """
 
 from __future__ import annotations
@@ -17,13 +22,14 @@ import logging
 import shutil
 import tempfile
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 
+from kinreg.cache import windows_from_arrays, windows_to_arrays
 from kinreg.config import SlicingConfig, WindowMode
 from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import FloatArray
@@ -44,6 +50,9 @@ POINT_MODE_BIN_S = 0.25
 
 # Open spill files kept at once; a time-sorted cloud touches one or two per chunk.
 _MAX_OPEN_FILES = 64
+
+SPILL_PREFIX = "kinreg-slices-"  # name prefix of every spill folder
+SPILL_COMPLETE = ".complete"  # written into a spill folder after its last point
 
 
 @dataclass(frozen=True)
@@ -206,6 +215,41 @@ class QuasiStaticSequence:
         for i in range(len(self.windows)):
             yield self.read_scan(i)
 
+    @property
+    def folder(self) -> Path:
+        """The spill folder."""
+        return self._store.folder
+
+    def index_arrays(self) -> dict[str, np.ndarray]:
+        """The small index of the spill (windows, unit ranges, point counts and origins of the
+        units, the summary) as plain arrays; :meth:`reopen` takes them back."""
+        s = self.summary
+        return {
+            **windows_to_arrays(self.windows, self._unit_ranges, self._store.counts),
+            "unit_origins": self._store.origins,
+            "summary_counts": np.array([s.n_points_read, s.n_points_in_scans, s.n_points_outside_trajectory,
+                                        s.n_points_in_skipped_windows, s.n_scans], dtype=np.int64),
+            "skipped_times_s": np.array([(w.t_start_s, w.t_end_s) for w in s.skipped], dtype=np.float64).reshape(-1, 2),
+            "skipped_n_points": np.array([w.n_points for w in s.skipped], dtype=np.int64),
+        }
+
+    @classmethod
+    def reopen(cls, folder: Path, index: Mapping[str, np.ndarray]) -> QuasiStaticSequence | None:
+        """The sequence of a finished spill in ``folder`` with its ``index`` (from
+        :meth:`index_arrays`), or ``None`` when the folder is not complete (no ``.complete``
+        mark, or a unit file of the wrong size). The returned sequence does not delete the
+        folder on :meth:`close`."""
+        windows, ranges, counts = windows_from_arrays(index)
+        store = _SpillWriter(folder, np.asarray(index["unit_origins"], dtype=np.float64))
+        store.counts = counts
+        if not (folder / SPILL_COMPLETE).is_file():
+            return None
+        for unit, count in enumerate(counts):
+            size = store.path(unit).stat().st_size if store.path(unit).is_file() else 0
+            if size != int(count) * SPILL_RECORD.itemsize:
+                return None
+        return cls(tuple(windows), tuple(ranges), store, summary_from_arrays(index), owns_folder=False)
+
     def close(self) -> None:
         if self._owns_folder:
             shutil.rmtree(self._store.folder, ignore_errors=True)
@@ -217,6 +261,27 @@ class QuasiStaticSequence:
         self.close()
 
 
+def summary_from_arrays(index: Mapping[str, np.ndarray]) -> SlicingSummary:
+    """The slicing summary stored in a sequence's index (see
+    :meth:`QuasiStaticSequence.index_arrays`)."""
+    c = [int(x) for x in index["summary_counts"]]
+    skipped = tuple(SkippedWindow(float(t[0]), float(t[1]), int(n))
+                    for t, n in zip(index["skipped_times_s"], index["skipped_n_points"], strict=True))
+    return SlicingSummary(c[0], c[1], c[2], c[3], c[4], skipped)
+
+
+def make_spill_folder(config: SlicingConfig, workdir: str | Path | None = None) -> Path:
+    """A new, empty spill folder in ``workdir`` (default ``config.temp_dir`` or the system
+    temporary folder). Raises :class:`ConfigError` when it cannot be created."""
+    base = workdir or config.temp_dir or None
+    try:
+        return Path(tempfile.mkdtemp(prefix=SPILL_PREFIX, dir=base))
+    except OSError as e:
+        where = base or tempfile.gettempdir()
+        raise ConfigError(f"[slicing] temp_dir: cannot create the spill folder: {e.strerror or e}",
+                          where) from None
+
+
 def slice_quasi_static(
     trajectory: Trajectory,
     cloud: CloudReader,
@@ -224,6 +289,7 @@ def slice_quasi_static(
     chunk_points: int = DEFAULT_CHUNK_POINTS,
     workdir: str | Path | None = None,
     progress: Progress | None = None,
+    folder: Path | None = None,
 ) -> QuasiStaticSequence:
     """Slice the run into quasi-static scans.
 
@@ -231,18 +297,17 @@ def slice_quasi_static(
     Points outside the trajectory's time range are counted and left out (warned about).
     Windows with fewer than ``config.min_points`` points are skipped and listed in the summary.
     ``workdir`` is where the spill folder is created (default ``config.temp_dir`` or the system
-    temporary folder). Raises :class:`InputError` if no window gets enough points.
+    temporary folder); the sequence deletes it on :meth:`~QuasiStaticSequence.close`. With
+    ``folder`` (an empty folder from :func:`make_spill_folder`) the points are spilled there
+    instead and the folder is the caller's to delete (it is deleted here only when slicing
+    fails). Raises :class:`InputError` if no window gets enough points.
     """
     progress = progress or NullProgress()
     edges = unit_edges(trajectory, config)
     n_units = len(edges) - 1
-    base = workdir or config.temp_dir or None
-    try:
-        folder = Path(tempfile.mkdtemp(prefix="kinreg-slices-", dir=base))
-    except OSError as e:
-        where = base or tempfile.gettempdir()
-        raise ConfigError(f"[slicing] temp_dir: cannot create the spill folder: {e.strerror or e}",
-                          where) from None
+    owns_folder = folder is None
+    if folder is None:
+        folder = make_spill_folder(config, workdir)
     mid = 0.5 * (edges[:-1] + edges[1:])
     store = _SpillWriter(folder, trajectory.pose_at(np.clip(mid, trajectory.t_start_s, trajectory.t_end_s)).t_xyz)
     n_read = n_outside = 0
@@ -268,11 +333,15 @@ def slice_quasi_static(
                 raise _spill_error(e, folder.parent, n_read) from None
             progress.advance(len(inside))
         progress.finish()
+        store.close()
+        try:
+            (folder / SPILL_COMPLETE).write_bytes(b"")
+        except OSError as e:
+            raise _spill_error(e, folder.parent, n_read) from None
     except BaseException:
         store.close()
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    store.close()
 
     if config.mode is WindowMode.POINTS:
         ranges = _group_point_bins(store.counts, config.window_points)
@@ -316,7 +385,7 @@ def slice_quasi_static(
         raise InputError(
             f"no window has at least {config.min_points} points ({len(ranges)} windows); "
             "use longer windows or a smaller min_points", cloud.path)
-    return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=True)
+    return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=owns_folder)
 
 
 def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:

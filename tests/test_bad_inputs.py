@@ -1,7 +1,9 @@
 """A catalogue of bad inputs, run through the ``kinreg`` entry point.
 
 Every case must end with exit code 1 and one line ``kinreg: error: FILE: PROBLEM`` on stderr
-(no traceback), and must leave no output and no temporary ``.*.tmp-*`` file behind. Rich progress
+(no traceback), and must leave no output and no temporary ``.*.tmp-*`` file behind. The stage
+cache (``.kinreg-cache/``) of stages that finished before the failure may stay: it is what
+``--resume`` continues from. Rich progress
 bars of stages that finished before the failure may precede the error line (they are drawn on
 stderr); they are the only other lines allowed. Log warnings go to pytest's log capture in-process,
 and are checked separately where a case is about a warning.
@@ -57,6 +59,11 @@ def message_lines(err: str) -> list[str]:
 
 def files_under(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file()) if folder.exists() else []
+
+
+def result_files(folder: Path) -> list[Path]:
+    """Files under ``folder`` outside the stage cache."""
+    return [p for p in files_under(folder) if ".kinreg-cache" not in p.relative_to(folder).parts]
 
 
 @dataclass
@@ -456,8 +463,29 @@ def output_is_a_folder(env: Env) -> Case:
 def output_folder_holds_results(env: Env) -> Case:
     env.out_dir.mkdir()
     (env.out_dir / "stations.csv").write_text("old results\n")
-    return Case(env.process_args(), env.out_dir, r"^already holds kinreg results; use --overwrite to replace them$",
+    return Case(env.process_args(), env.out_dir,
+                r"^already holds kinreg results; use --overwrite to replace them or --resume to update them$",
                 env.out_dir / "report.json", keep={env.out_dir / "stations.csv": b"old results\n"})
+
+
+def output_folder_holds_unfinished_run(env: Env) -> Case:
+    (env.out_dir / ".kinreg-cache").mkdir(parents=True)
+    return Case(env.process_args(), env.out_dir,
+                r"^holds an unfinished kinreg run; use --resume to continue it or --overwrite to start afresh$",
+                env.out_dir / "report.json")
+
+
+def resume_in_a_folder_without_kinreg_run(env: Env) -> Case:
+    env.out_dir.mkdir()
+    (env.out_dir / "notes.txt").write_text("not kinreg's\n")
+    return Case(env.process_args("--resume"), env.out_dir,
+                r"^holds no kinreg run to resume \(no results, no \.kinreg-cache\); check --out or leave out --resume$",
+                env.out_dir / "report.json", keep={env.out_dir / "notes.txt": b"not kinreg's\n"})
+
+
+def resume_and_overwrite(env: Env) -> Case:
+    return Case(env.process_args("--resume", "--overwrite"), None, r"^--resume and --overwrite exclude each other",
+                env.out_dir / "report.json")
 
 
 def output_under_a_file(env: Env) -> Case:
@@ -585,7 +613,8 @@ CASES = [
     config_syntax_error, config_unknown_key, config_wrong_type, config_missing, negative_window_on_command_line,
     spill_folder_missing,
     # outputs
-    output_exists, output_is_a_folder, output_folder_holds_results, output_under_a_file, output_folder_not_writable,
+    output_exists, output_is_a_folder, output_folder_holds_results, output_folder_holds_unfinished_run,
+    resume_in_a_folder_without_kinreg_run, resume_and_overwrite, output_under_a_file, output_folder_not_writable,
     disk_full_while_spilling, disk_full_while_writing_e57, disk_full_while_writing_text,
 ]
 PIPELINE_CASES = [
@@ -606,7 +635,7 @@ def test_bad_input_is_one_line_exit_1_and_no_output(
 ) -> None:
     env = Env(tmp_path, base_run, monkeypatch)
     case = make_case(env)
-    before = set(files_under(env.out_dir)) | set(case.keep)
+    before = set(result_files(env.out_dir)) | set(case.keep)
 
     code, _, err = run_cli(case.args, capsys)
 
@@ -623,7 +652,7 @@ def test_bad_input_is_one_line_exit_1_and_no_output(
     assert re.search(case.reason, message), f"{message!r} does not match {case.reason!r}"
     # No output, no temporary file, and the files that were there are untouched.
     assert case.out in case.keep or not case.out.exists()
-    assert set(files_under(env.out_dir)) <= before
+    assert set(result_files(env.out_dir)) <= before
     assert not [p for p in env.tmp.rglob(".*.tmp-*")]
     for path, content in case.keep.items():
         assert path.read_bytes() == content

@@ -205,3 +205,13 @@ def test_build_directory_is_atomic(tmp_path: Path):
     with cache.build_directory("slice", "k1") as d:
         (d / "unit_000000.bin").write_bytes(b"123")
     assert (cache.directory("slice", "k1") / "unit_000000.bin").read_bytes() == b"123"
+
+
+def test_prune_keeps_what_a_run_used_and_nothing_else(tmp_path: Path):
+    cache = StageCache(tmp_path / "cache")
+    for stage, key in (("planes", "a1"), ("planes", "b2"), ("link", "c3")):
+        cache.store(stage, key, {"x": np.arange(3.0)})
+    (tmp_path / "cache" / "planes" / "notes.txt").write_text("not an entry")
+    assert cache.prune({("planes", "a1"), ("link", "zz")}) == 2
+    assert cache.has("planes", "a1") and not cache.has("planes", "b2") and not cache.has("link", "c3")
+    assert sorted(p.name for p in (tmp_path / "cache" / "planes").iterdir()) == ["a1.json", "a1.npz", "notes.txt"]

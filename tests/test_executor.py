@@ -1,7 +1,9 @@
 """Executors: the same results, in the same order, in this process, in local worker processes
 and on a real Dask cluster (loopback)."""
 
+import ctypes
 import importlib.util
+import os
 import time
 
 import numpy as np
@@ -11,7 +13,7 @@ from planefixtures import pose, scan_planes
 from kinreg.cache import links_to_arrays
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
 from kinreg.errors import ConfigError
-from kinreg.executor import ExecutorContext, make_executor, parallel_map
+from kinreg.executor import THREAD_VARIABLES, ExecutorContext, make_executor, parallel_map
 from kinreg.matching import match_planes
 from kinreg.pairwise import adjust_pair
 
@@ -35,6 +37,30 @@ def fail_on_three(k: int) -> int:
     if k == 3:
         raise ValueError("item 3")
     return k
+
+
+def openblas_threads() -> int | None:
+    """The size of the thread pool of the OpenBLAS numpy loaded in this process (None where it
+    cannot be read: another BLAS, or no /proc)."""
+    try:
+        with open("/proc/self/maps") as f:
+            paths = sorted({line.split()[-1] for line in f if "openblas" in line.lower() and "/" in line})
+    except OSError:
+        return None
+    for path in paths:
+        lib = ctypes.CDLL(path)
+        for name in ("scipy_openblas_get_num_threads64_", "openblas_get_num_threads64_", "openblas_get_num_threads"):
+            get = getattr(lib, name, None)
+            if get is not None:
+                get.restype = ctypes.c_int
+                return int(get())
+    return None
+
+
+def thread_settings(_: int) -> dict:
+    """What a worker runs with: the thread variables and its BLAS pool."""
+    np.linalg.svd(np.ones((200, 200)))  # BLAS is loaded and used
+    return {"env": {name: os.environ.get(name) for name in THREAD_VARIABLES}, "blas": openblas_threads()}
 
 
 def link_pair(seed: int) -> dict[str, np.ndarray]:
@@ -125,3 +151,15 @@ def test_bad_settings_are_refused():
         with pytest.raises(ConfigError, match="Dask scheduler"), make_executor(scheduler="tcp://127.0.0.1:1",
                                                                                  connect_timeout_s=1):
             pass
+
+
+def test_each_worker_uses_one_blas_and_openmp_thread_and_this_process_is_left_alone():
+    before = thread_settings(0)
+    with make_executor(workers=2) as ctx:
+        in_workers = parallel_map(thread_settings, range(4), ctx)
+    for settings in in_workers:
+        assert settings["env"] == dict.fromkeys(THREAD_VARIABLES, "1")
+        assert settings["blas"] in (1, None)
+    assert thread_settings(0) == before  # the calling process keeps its settings (in-process runs)
+    if before["blas"] is not None:
+        assert in_workers[0]["blas"] == 1

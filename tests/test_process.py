@@ -29,7 +29,8 @@ def processed(tmp_path_factory):
 def test_all_outputs_are_written(processed):
     names = sorted(p.name for p in (processed / "out").iterdir())
     assert names == sorted(["config.toml", "corrected.laz", "links.csv", "report.html", "report.json",
-                            "sequence.e57", "stations.csv", "trajectory_corrected.txt"])
+                            "sequence.e57", "stations.csv", "trajectory_corrected.txt",
+                            ".kinreg-cache"])  # the stage cache, for --resume
 
 
 def test_stations_csv_contract(processed):

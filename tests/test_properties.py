@@ -223,17 +223,20 @@ def test_read_trajectory_on_arbitrary_ply_raises_only_trajectory_error(header: s
 # --------------------------------------------------------------------------- reference planes
 
 TOML_KEYS = st.sampled_from(["plane_construction_accuracy_m", "name", "axis", "offset_m", "normal_sign", "normal",
-                             "d_m", "station", "plane", "reference", "extra"])
+                             "d_m", "station", "plane", "reference", "extra", "initial_transform", "rotation_deg",
+                             "translation_m", "matrix"])
 TOML_VALUES = st.one_of(
     st.sampled_from(['"x"', '"y"', '"z"', '"w"', '""', "1", "-1", "0", "2", "0.05", "-0.05", "nan", "inf", "true",
                      "[0.0, 0.5, 0.866]", "[0, 0, 0]", "[1, 2]", '["a", 1, 2]', "[]", "{}", "1e400", '"wall"',
-                     "1979-05-27", "{ a = 1 }"]),
+                     "1979-05-27", "{ a = 1 }", "[[1, 0, 0, 5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]",
+                     "[[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]", "[[1e308, 0, 0, 0]]"]),
     st.floats(allow_nan=False, allow_infinity=False).map(repr),
     st.text(max_size=5).map(lambda s: '"' + s.replace("\\", "").replace('"', "").replace("\n", "") + '"'),
 )
 TOML_LINES = st.one_of(
     st.tuples(TOML_KEYS, TOML_VALUES).map(lambda kv: f"{kv[0]} = {kv[1]}"),
-    st.sampled_from(["[[plane]]", "[[link]]", "[plane]", "[link]", "[[other]]", "[", "= 1", "# comment", ""]),
+    st.sampled_from(["[[plane]]", "[[link]]", "[plane]", "[link]", "[[other]]", "[", "= 1", "# comment", "",
+                     "[initial_transform]"]),
 )
 TOML_DOCUMENTS = st.one_of(st.lists(TOML_LINES, max_size=16).map("\n".join), st.text(max_size=200))
 

@@ -16,7 +16,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from kinreg.errors import ConfigError, InputError
+from kinreg.errors import CloudError, ConfigError, InputError
 
 console = Console()
 
@@ -38,6 +38,8 @@ def _read_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
     with open_cloud(path, require_time=True) as reader:
         for chunk in reader.iter_chunks():
             xyz.append(chunk.xyz)
+            if chunk.stamps_s is None:  # not reached: require_time=True
+                raise CloudError("the points have no time stamps", path)
             t.append(chunk.stamps_s)
     return np.concatenate(xyz), np.concatenate(t)
 
@@ -93,7 +95,7 @@ def calibrate(
     from kinreg.io.reference_planes import read_reference_planes
     from kinreg.io.trajectory import read_trajectory
 
-    approx = SystemCalibration(_floats(lever_arm, 3, "--lever-arm"),
+    approx = SystemCalibration(np.array(_floats(lever_arm, 3, "--lever-arm")),
                                np.radians(_floats(boresight_deg, 3, "--boresight-deg")))
     ref = read_reference_planes(planes)
     traj = read_trajectory(trajectory, trajectory_format)

@@ -144,7 +144,13 @@ def process_command(
     reference: Annotated[Path | None, typer.Option("--reference", help="Reference planes (TOML).")] = None,
     config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
     window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing results.")] = False,
+    overwrite: Annotated[
+        bool, typer.Option("--overwrite", help="Start afresh: replace existing results, clear the stage cache.")
+    ] = False,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="Re-use the stage cache of the output folder (an interrupted or earlier "
+                           "run): only stages whose inputs changed are done again; the outputs are rewritten.")
+    ] = False,
     workers: Annotated[int | None, typer.Option("--workers", help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
@@ -153,7 +159,7 @@ def process_command(
 
     cfg = _config(config, {"slicing.window_s": window_s})
     summary = process(ProcessInputs(trajectory, cloud, static, reference), out_dir, cfg, overwrite=overwrite,
-                      progress=RichProgress(console), workers=workers, scheduler=scheduler)
+                      progress=RichProgress(console), workers=workers, scheduler=scheduler, resume=resume)
     table = Table(title=f"kinreg results in {out_dir}", show_header=False, title_justify="left")
     table.add_column("", style="bold")
     table.add_column("")
@@ -166,6 +172,11 @@ def process_command(
     table.add_row("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm")
     table.add_row("rejected observations", f"{summary.n_rejected}")
     table.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items()))
+    reused = {k: v for k, v in summary.stage_cache.items() if v["reused"]}
+    if reused:
+        table.add_row("re-used (stage cache)", ", ".join(
+            f"{k} {v['reused']}/{v['reused'] + v['computed']}" if v["reused"] + v["computed"] > 1 else k
+            for k, v in reused.items()))
     out.print(table)
 
 

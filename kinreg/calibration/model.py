@@ -242,6 +242,14 @@ class CalibrationResult:
 # --------------------------------------------------------------------------- plane assignment
 
 
+def _require_planes_frame(planes: ReferencePlanes) -> None:
+    # The tracker measures in the planes' frame; a rough SLAM-frame transform has no place here,
+    # and ignoring one silently would calibrate against the wrong geometry.
+    if planes.T_ref_traj is not None:
+        raise ConfigError("[initial_transform] is for `kinreg process --reference` only: calibration needs the "
+                          "trajectory in the planes' frame", planes.source)
+
+
 def assign_points_to_planes(points_s: FloatArray, stamps_s: FloatArray, trajectory: Trajectory,
                             planes: ReferencePlanes, approximate: SystemCalibration,
                             gate_m: float, ambiguity_factor: float = 3.0) -> np.ndarray:
@@ -254,6 +262,7 @@ def assign_points_to_planes(points_s: FloatArray, stamps_s: FloatArray, trajecto
     approximate calibration a point of one plane can look closer to its neighbour. Points outside
     the trajectory's time range get -1.
     """
+    _require_planes_frame(planes)
     P = np.asarray(points_s, dtype=np.float64)
     t = np.asarray(stamps_s, dtype=np.float64)
     out = np.full(len(P), -1, dtype=np.int64)
@@ -348,6 +357,7 @@ def estimate_calibration(points_s: ArrayLike, stamps_s: ArrayLike, plane_index: 
     :class:`EstimationError` naming the undetermined parameters when the data do not determine
     all six (e.g. all planes parallel), or when too few points remain.
     """
+    _require_planes_frame(planes)
     cfg = config or CalibrationConfig()
     P_all = np.asarray(points_s, dtype=np.float64)
     t_all = np.asarray(stamps_s, dtype=np.float64)

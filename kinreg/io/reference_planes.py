@@ -18,9 +18,27 @@ keeps everything the file says, including ``[[link]]`` entries it does not inter
     station = "qs_00012"
     plane = "p3"
     reference = "south_wall"
+    [initial_transform]          # optional: the trajectory's frame is not the planes' frame
+    rotation_deg = [0.0, 0.0, 90.0]
+    translation_m = [512300.0, 5402100.0, 312.0]
 
 A plane is ``n . x = d`` with ``|n| = 1`` in metres. An axis plane with ``normal_sign = -1`` at
 ``offset_m = c`` has ``n = -e_axis`` and ``d = -c`` (the same geometric plane, opposite face).
+
+``[initial_transform]`` is the rough pose ``T_ref_traj`` of the trajectory's (SLAM) frame in the
+planes' frame, ``x_ref = R x_traj + t``, for data whose frame is arbitrary. Either
+
+- ``rotation_deg = [rx, ry, rz]``: rotations about the *fixed* axes x, then y, then z, in degrees,
+  ``R = Rz(rz) Ry(ry) Rx(rx)`` (roll, pitch, yaw; scipy ``from_euler("xyz", ...)``, lower case;
+  a heading alone is ``[0, 0, heading]``, counter-clockwise seen from +z), and/or
+  ``translation_m = [tx, ty, tz]`` (a missing one is zero), or
+- ``matrix = [[r, r, r, tx], [r, r, r, ty], [r, r, r, tz], [0, 0, 0, 1]]``: the 4x4 homogeneous
+  matrix by rows; its rotation part must be orthonormal within ``MATRIX_TOLERANCE`` with
+  determinant +1, its last row exactly ``0 0 0 1``.
+
+It only has to be good enough for the association gates (``[reference]`` in the configuration);
+the adjustment finds the exact datum.
+
 Every problem raises :class:`~kinreg.errors.ConfigError` with the file path and one line.
 """
 
@@ -37,13 +55,16 @@ import numpy as np
 import tomllib
 
 from kinreg.errors import ConfigError
-from kinreg.geometry import FloatArray
+from kinreg.geometry import FloatArray, Pose
 
 logger = logging.getLogger(__name__)
 
 _AXES = {"x": 0, "y": 1, "z": 2}
 # Normals shorter than this are treated as zero (cannot be normalised meaningfully).
 _MIN_NORMAL_NORM = 1e-9
+# Largest |R^T R - I| element accepted for the rotation of an [initial_transform] matrix: loose
+# enough for matrices printed with 6 decimals, tight enough to catch scale and shear.
+MATRIX_TOLERANCE = 1e-5
 
 
 @dataclass(frozen=True, eq=False)
@@ -77,13 +98,17 @@ class ReferencePlanes:
     """The content of a reference-plane file.
 
     ``accuracy_m`` is ``plane_construction_accuracy_m`` (> 0): the standard deviation of the
-    plane offsets and the "wobble" of the normals, metres. ``source`` is the file it came from.
+    plane offsets and the "wobble" of the normals, metres. ``T_ref_traj`` is the
+    ``[initial_transform]`` (trajectory frame into the planes' frame), ``None`` when the file has
+    none (the trajectory is then roughly in the planes' frame already). ``source`` is the file it
+    came from.
     """
 
     accuracy_m: float
     planes: tuple[ReferencePlane, ...]
     links: tuple[ReferenceLink, ...] = ()
     source: str | None = field(default=None, compare=False)
+    T_ref_traj: Pose | None = None
 
     def __len__(self) -> int:
         return len(self.planes)
@@ -114,8 +139,8 @@ def read_reference_planes(path: str | Path) -> ReferencePlanes:
     """Read a reference-plane TOML file (format in the module docstring).
 
     Raises :class:`ConfigError` (with ``path``) for a missing file, a TOML syntax error, missing or
-    wrongly typed keys, an unknown axis, a zero normal, a non-positive accuracy, duplicate names
-    or a link to an unknown plane.
+    wrongly typed keys, an unknown axis, a zero normal, a non-positive accuracy, duplicate names,
+    a link to an unknown plane, or an ``[initial_transform]`` that is not a rigid transform.
     """
     p = Path(path)
     try:
@@ -138,11 +163,11 @@ def parse_reference_planes(text: str, source: str | None = None) -> ReferencePla
 
 def reference_planes_from_mapping(doc: Mapping[str, Any], source: str | None = None) -> ReferencePlanes:
     """Build :class:`ReferencePlanes` from an already parsed TOML document (e.g. a config section)."""
-    known = {"plane_construction_accuracy_m", "plane", "link"}
+    known = {"plane_construction_accuracy_m", "plane", "link", "initial_transform"}
     unknown = sorted(set(doc) - known)
     if unknown:
         raise ConfigError(f"unknown top-level key(s) {', '.join(unknown)} (expected "
-                          "plane_construction_accuracy_m, [[plane]], [[link]])", source)
+                          "plane_construction_accuracy_m, [[plane]], [[link]], [initial_transform])", source)
     if "plane_construction_accuracy_m" not in doc:
         raise ConfigError("missing key 'plane_construction_accuracy_m'", source)
     accuracy = _number(doc["plane_construction_accuracy_m"], "plane_construction_accuracy_m", source)
@@ -167,8 +192,10 @@ def reference_planes_from_mapping(doc: Mapping[str, Any], source: str | None = N
     if not isinstance(raw_links, list):
         raise ConfigError("'link' must be an array of tables ([[link]])", source)
     links = tuple(_parse_link(entry, i, seen, source) for i, entry in enumerate(raw_links))
+    T_ref_traj = _parse_initial_transform(doc["initial_transform"], source) if "initial_transform" in doc else None
     logger.debug("read %d reference planes and %d links from %s", len(planes), len(links), source)
-    return ReferencePlanes(accuracy_m=accuracy, planes=tuple(planes), links=links, source=source)
+    return ReferencePlanes(accuracy_m=accuracy, planes=tuple(planes), links=links, source=source,
+                           T_ref_traj=T_ref_traj)
 
 
 def _number(value: Any, what: str, source: str | None) -> float:
@@ -255,3 +282,70 @@ def _parse_link(entry: Any, i: int, names: set[str], source: str | None) -> Refe
     if values["reference"] not in names:
         raise ConfigError(f"{where}: unknown reference plane '{values['reference']}'", source)
     return ReferenceLink(**values)
+
+
+def rotation_from_degrees(rotation_deg: FloatArray) -> FloatArray:
+    """``R = Rz(rz) Ry(ry) Rx(rx)`` for ``rotation_deg = [rx, ry, rz]``: rotations about the fixed
+    axes x, then y, then z (the ``[initial_transform]`` convention).
+
+    >>> np.round(rotation_from_degrees(np.array([0.0, 0.0, 90.0])) @ [1.0, 0.0, 0.0], 12)
+    array([0., 1., 0.])
+    """
+    rx, ry, rz = np.radians(np.asarray(rotation_deg, dtype=np.float64))
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
+    Ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
+    Rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+    return Rz @ Ry @ Rx
+
+
+def _vector3(value: Any, what: str, source: str | None) -> FloatArray:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ConfigError(f"{what} must be a list of 3 numbers, got {value!r}", source)
+    return np.array([_number(v, what, source) for v in value])
+
+
+def _parse_initial_transform(entry: Any, source: str | None) -> Pose:
+    where = "[initial_transform]"
+    if not isinstance(entry, dict):
+        raise ConfigError(f"{where} must be a table", source)
+    unknown = sorted(set(entry) - {"rotation_deg", "translation_m", "matrix"})
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (expected rotation_deg and "
+                          "translation_m, or matrix)", source)
+    if "matrix" in entry:
+        if {"rotation_deg", "translation_m"} & set(entry):
+            raise ConfigError(f"{where}: give either matrix or rotation_deg/translation_m, not both", source)
+        return _rigid_matrix(entry["matrix"], where, source)
+    if not entry:
+        raise ConfigError(f"{where}: give rotation_deg and translation_m, or matrix", source)
+    R = np.eye(3)
+    if "rotation_deg" in entry:
+        R = rotation_from_degrees(_vector3(entry["rotation_deg"], f"{where}: rotation_deg", source))
+    t = np.zeros(3)
+    if "translation_m" in entry:
+        t = _vector3(entry["translation_m"], f"{where}: translation_m", source)
+    return Pose.from_rotation_translation(R, t)
+
+
+def _rigid_matrix(raw: Any, where: str, source: str | None) -> Pose:
+    shape_error = f"{where}: matrix must be 4 rows of 4 numbers, got {raw!r}"
+    if not isinstance(raw, list) or len(raw) != 4:
+        raise ConfigError(shape_error, source)
+    if not all(isinstance(row, list) and len(row) == 4 for row in raw):
+        raise ConfigError(shape_error, source)
+    M = np.array([[_number(v, f"{where}: matrix", source) for v in row] for row in raw])
+    if not np.array_equal(M[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ConfigError(f"{where}: the matrix's last row must be 0 0 0 1, got {M[3].tolist()}", source)
+    R = M[:3, :3]
+    # Bounded entries first, so that R^T R cannot overflow for absurd input.
+    error = float(np.abs(R.T @ R - np.eye(3)).max()) if np.abs(R).max() <= 1.0 + MATRIX_TOLERANCE else np.inf
+    if not error <= MATRIX_TOLERANCE:
+        raise ConfigError(f"{where}: the matrix's rotation part is not orthonormal (largest |R^T R - I| element "
+                          f"{error:.3g}, tolerance {MATRIX_TOLERANCE:g}); scale and shear are not allowed", source)
+    if np.linalg.det(R) < 0.0:
+        raise ConfigError(f"{where}: the matrix's rotation part has determinant -1 (a reflection, e.g. a "
+                          "left-handed frame), not a rotation", source)
+    # The nearest rotation (the polar factor), so that the tolerance does not leak into the poses.
+    U, _, Vt = np.linalg.svd(R)
+    return Pose.from_rotation_translation(U @ Vt, M[:3, 3])

@@ -1,0 +1,398 @@
+"""Resumable ``kinreg process``: the output folder's stage cache and the rules around it.
+
+Every ``kinreg process`` run keeps its stage results in ``<out>/.kinreg-cache/`` (a
+:class:`~kinreg.cache.StageCache`: plain arrays and JSON, no pickle). A later run with
+``--resume`` looks each stage up under a key of its inputs and re-does only what changed:
+
+- ``slice``: the index of the quasi-static scans (windows, point counts, summary), keyed by the
+  trajectory and cloud files (path, size, modification time), ``[slicing]`` (not ``temp_dir``)
+  and the trajectory format settings of ``[input]`` (not ``chunk_points``: it bounds memory, not
+  results). The spilled points themselves (24 bytes a point) stay in ``[slicing] temp_dir``, not
+  in the output folder, and are deleted whenever kinreg ends (finished, error, Ctrl-C); only a
+  *killed* run (SIGKILL, SIGTERM, power cut) leaves them, and ``--resume`` then re-uses them
+  (``--overwrite`` deletes them). Points are needed again only to detect planes of scans not in
+  the cache and to write ``sequence.e57``; without a kept spill that costs one more pass over
+  the cloud.
+- ``planes``: one entry per scan (a kill during plane detection keeps the finished scans),
+  keyed by the slice key, the scan's index and ``[planes]``; ``static-planes`` likewise per
+  static scan, keyed by the static E57 file.
+- ``link``: all pairwise links, keyed by the stations and planes themselves (so also by what
+  moved them, e.g. ``[initial_transform]`` of the reference planes), ``[matching]``, ``[drift]``,
+  ``[pairwise]`` and (with static scans) ``[static]``.
+- The block adjustment is not stored: it takes seconds, and its result is what the outputs
+  are keyed by.
+- ``output``: which ``corrected.laz`` and ``sequence.e57`` are in the folder (size and
+  modification time), keyed by what they are made of (the cloud, the trajectory and the
+  correction; the slice key and the adjusted poses). One that is still current is kept, not
+  written again; every other output is always rewritten.
+
+Every key also covers the cache schema and kinreg version. At the end of a finished run the
+entries it did not use are deleted, so the cache holds one run's results (kilobytes per scan).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import logging
+import os
+import re
+import shutil
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kinreg.cache import (
+    CacheEntry,
+    StageCache,
+    planes_from_arrays,
+    planes_to_arrays,
+    stations_from_arrays,
+    stations_to_arrays,
+)
+from kinreg.config import KinregConfig
+from kinreg.errors import ConfigError, InputError, OutputError
+from kinreg.geometry import Pose
+from kinreg.io.cloud import open_cloud
+from kinreg.progress import Progress
+from kinreg.slicing import (
+    SPILL_COMPLETE,
+    SPILL_PREFIX,
+    QuasiStaticSequence,
+    SlicingSummary,
+    make_spill_folder,
+    slice_quasi_static,
+    summary_from_arrays,
+)
+from kinreg.types import Plane, Trajectory
+
+log = logging.getLogger(__name__)
+
+CACHE_FOLDER = ".kinreg-cache"
+# Where the spill of the run is while it lives (a JSON file in the cache folder).
+_SPILL_RECORD = "spill.json"
+_SPILL_FILE = re.compile(r"unit_\d+\.bin")
+
+
+@dataclass
+class StageUse:
+    """How many items of a stage came from the cache and how many were computed."""
+
+    reused: int = 0
+    computed: int = 0
+
+
+@dataclass
+class RunCache:
+    """The stage cache of one run in its output folder: what it used and what it reused."""
+
+    out_dir: Path
+    cache: StageCache
+    used: set[tuple[str, str]] = field(default_factory=set)
+    use: dict[str, StageUse] = field(default_factory=dict)
+
+    def key(self, stage: str, *parts: Any) -> str:
+        key = self.cache.key(stage, *parts)
+        self.used.add((stage, key))
+        return key
+
+    def load(self, stage: str, key: str) -> CacheEntry | None:
+        return self.cache.load(stage, key)
+
+    def store(self, stage: str, key: str, arrays: Mapping[str, np.ndarray],
+              meta: Mapping[str, Any] | None = None) -> None:
+        self.cache.store(stage, key, arrays, meta)
+
+    def count(self, stage: str, reused: int = 0, computed: int = 0) -> None:
+        use = self.use.setdefault(stage, StageUse())
+        use.reused += reused
+        use.computed += computed
+
+    def summary(self) -> dict[str, dict[str, int]]:
+        """Per stage: ``{"reused": n, "computed": m}`` (for the report)."""
+        return {stage: {"reused": u.reused, "computed": u.computed} for stage, u in self.use.items()}
+
+    # ------------------------------------------------------------------ outputs
+
+    def output_is_current(self, name: str, key: str) -> bool:
+        """Whether ``out_dir/name`` is the file recorded under ``key`` (same size and
+        modification time as when this kinreg wrote it)."""
+        entry = self.load("output", key)
+        path = self.out_dir / name
+        if entry is None or not path.is_file():
+            return False
+        st = path.stat()
+        return entry.meta.get("file") == name and entry.meta.get("size") == st.st_size and \
+            entry.meta.get("mtime_ns") == st.st_mtime_ns
+
+    def record_output(self, name: str, key: str) -> None:
+        st = (self.out_dir / name).stat()
+        self.store("output", key, {}, {"file": name, "size": st.st_size, "mtime_ns": st.st_mtime_ns})
+
+    def finish(self) -> None:
+        """After a finished run: delete the entries it did not use."""
+        n = self.cache.prune(self.used)
+        if n:
+            log.info("stage cache: %d entries of earlier runs deleted", n)
+
+
+# --------------------------------------------------------------------------- the output folder
+
+
+def output_folder_state(out_dir: Path, output_files: tuple[str, ...]) -> tuple[bool, bool]:
+    """(holds kinreg results, holds a stage cache)."""
+    results = out_dir.is_dir() and any((out_dir / name).exists() for name in output_files)
+    return results, (out_dir / CACHE_FOLDER).is_dir()
+
+
+def open_run_cache(out_dir: Path, output_files: tuple[str, ...], overwrite: bool, resume: bool) -> RunCache:
+    """Check the output folder against the flags and open its stage cache.
+
+    - neither flag: the folder must hold no kinreg results and no stage cache;
+    - ``resume``: the folder's cache is used; a folder that holds neither results nor a cache
+      but other files is refused (a wrong ``--out``), a missing or empty one starts afresh;
+    - ``overwrite``: the cache (and a kept spill) is deleted, the run starts afresh.
+
+    Stale temporary files of killed runs are removed. Raises :class:`OutputError` or
+    :class:`ConfigError` (both flags).
+    """
+    if overwrite and resume:
+        raise ConfigError("--resume and --overwrite exclude each other (--resume re-uses the stage cache, "
+                          "--overwrite starts afresh)")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError("exists and is not a folder", out_dir)
+    has_results, has_cache = output_folder_state(out_dir, output_files)
+    if not overwrite and not resume:
+        if has_results:
+            raise OutputError("already holds kinreg results; use --overwrite to replace them or --resume to "
+                              "update them", out_dir)
+        if has_cache:
+            raise OutputError("holds an unfinished kinreg run; use --resume to continue it or --overwrite to "
+                              "start afresh", out_dir)
+    if resume and not has_results and not has_cache and out_dir.is_dir() and any(out_dir.iterdir()):
+        raise OutputError("holds no kinreg run to resume (no results, no .kinreg-cache); check --out or "
+                          "leave out --resume", out_dir)
+    cache = StageCache(out_dir / CACHE_FOLDER)
+    if overwrite and has_cache:
+        _remove_recorded_spill(cache.folder)
+        try:
+            shutil.rmtree(cache.folder)
+        except OSError as e:
+            raise OutputError(f"cannot delete the stage cache: {e.strerror or e}", cache.folder) from None
+    if resume and has_cache:
+        log.info("%s: resuming with the stage cache", out_dir)
+    cache.remove_stale()
+    remove_stale_outputs(out_dir, output_files)
+    return RunCache(out_dir, cache)
+
+
+def remove_stale_outputs(out_dir: Path, output_files: tuple[str, ...]) -> None:
+    """Delete the temporary files of outputs (``.NAME.tmp-PID...``) left by killed runs."""
+    if not out_dir.is_dir():
+        return
+    stems = {Path(name).stem for name in output_files} | set(output_files)
+    pattern = re.compile(r"\.(.+)\.tmp-(\d+)(\.[A-Za-z0-9]+)?")
+    for path in out_dir.iterdir():
+        m = pattern.fullmatch(path.name)
+        if m and m.group(1) in stems and path.is_file() and not _alive(int(m.group(2))):
+            path.unlink(missing_ok=True)
+
+
+def remove_outputs(out_dir: Path, names: tuple[str, ...]) -> None:
+    """Delete outputs of an earlier run before this run writes its own, so that the folder never
+    mixes two runs (``report.json``, written last, marks a finished run)."""
+    for name in names:
+        try:
+            (out_dir / name).unlink(missing_ok=True)
+        except OSError as e:
+            raise OutputError(f"cannot replace: {e.strerror or e}", out_dir / name) from None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# --------------------------------------------------------------------------- slicing and its spill
+
+
+def _read_spill_record(cache_folder: Path) -> tuple[str, Path] | None:
+    try:
+        data = json.loads((cache_folder / _SPILL_RECORD).read_text(encoding="utf-8"))
+        return str(data["key"]), Path(data["folder"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _write_spill_record(cache_folder: Path, key: str, folder: Path) -> None:
+    cache_folder.mkdir(parents=True, exist_ok=True)
+    path = cache_folder / _SPILL_RECORD
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps({"key": key, "folder": str(folder.resolve())}) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _remove_spill(folder: Path) -> None:
+    """Delete a spill folder, but only one that looks like a spill: the path comes from a file in
+    the user's folder, and a spill holds nothing but unit files and its completion mark."""
+    if not folder.is_dir() or folder.is_symlink() or not folder.name.startswith(SPILL_PREFIX):
+        return
+    if all(_SPILL_FILE.fullmatch(p.name) or p.name == SPILL_COMPLETE for p in folder.iterdir()):
+        shutil.rmtree(folder, ignore_errors=True)
+    else:
+        log.warning("%s: not deleted: it holds files that are not kinreg's spill", folder)
+
+
+def _remove_recorded_spill(cache_folder: Path) -> None:
+    record = _read_spill_record(cache_folder)
+    if record is not None:
+        _remove_spill(record[1])
+    (cache_folder / _SPILL_RECORD).unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        cache_folder.rmdir()  # a run that stored nothing (it failed in slicing) leaves no cache
+
+
+class CachedSlices:
+    """The sliced run: its index (from the cache or from slicing now) and, on demand, its
+    points (a kept spill reopened, or the cloud sliced again)."""
+
+    def __init__(self, run: RunCache, key: str, cloud_path: Path, index: Mapping[str, np.ndarray],
+                 n_points_input: int, sequence: QuasiStaticSequence | None,
+                 slice_again: Callable[[], QuasiStaticSequence]) -> None:
+        self.run = run
+        self.key = key
+        self.cloud_path = cloud_path
+        self.index = index
+        self.n_points_input = n_points_input
+        self.summary: SlicingSummary = summary_from_arrays(index)
+        self._sequence = sequence
+        self._slice_again = slice_again
+
+    def __len__(self) -> int:
+        return len(self.index["scan_id"])
+
+    def sequence(self) -> QuasiStaticSequence:
+        """The sequence with its points: the open one, the kept spill of an interrupted run, or
+        the cloud sliced again (one pass; the result must equal the cached index)."""
+        if self._sequence is not None:
+            return self._sequence
+        record = _read_spill_record(self.run.cache.folder)
+        if record is not None and record[0] == self.key:
+            sequence = QuasiStaticSequence.reopen(record[1], self.index)
+            if sequence is not None:
+                log.info("slice: the points of an interrupted run are re-used from %s", record[1])
+                self._sequence = sequence
+                return sequence
+        sequence = self._slice_again()  # deletes an incomplete spill first
+        if not _same_index(sequence.index_arrays(), self.index):
+            raise InputError("changed since its scans were cached, though its size and modification time did "
+                             "not; use --overwrite to start afresh", self.cloud_path)
+        self._sequence = sequence
+        return sequence
+
+    def close(self) -> None:
+        """Delete the spill and its record."""
+        _remove_recorded_spill(self.run.cache.folder)
+
+
+def _same_index(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> bool:
+    return set(a) == set(b) and all(np.array_equal(np.asarray(a[k]), np.asarray(b[k])) for k in a)
+
+
+@contextmanager
+def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajectory: Trajectory,
+               config: KinregConfig, progress: Progress) -> Iterator[CachedSlices]:
+    """The ``slice`` stage through the cache (see the module docstring). On leaving, also by an
+    exception or Ctrl-C, the spill is deleted; only a killed process (SIGKILL, SIGTERM, power cut)
+    leaves it, and then ``--resume`` (or ``--overwrite``) of the same folder finds it."""
+    input_part = {"trajectory_format": config.input.trajectory_format,
+                  "trajectory_columns": config.input.trajectory_columns}
+    slicing_part = dataclasses.replace(config.slicing, temp_dir="")  # where the spill goes is no result
+    key = run.key("slice", trajectory_path, cloud_path, slicing_part, input_part)
+    entry = run.load("slice", key)
+    record = _read_spill_record(run.cache.folder)
+    if record is not None and (entry is None or record[0] != key):
+        _remove_recorded_spill(run.cache.folder)  # an unfinished spill, or one of other inputs
+
+    def slice_now() -> QuasiStaticSequence:
+        _remove_recorded_spill(run.cache.folder)
+        folder = make_spill_folder(config.slicing)
+        try:
+            try:
+                _write_spill_record(run.cache.folder, key, folder)
+            except OSError as e:
+                raise OutputError(f"cannot write the stage cache: {e.strerror or e}", run.cache.folder) from None
+            with open_cloud(cloud_path) as cloud:
+                sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
+                                              progress=progress, folder=folder)
+        except BaseException:
+            shutil.rmtree(folder, ignore_errors=True)
+            _remove_recorded_spill(run.cache.folder)
+            raise
+        run.count("slice", computed=1)
+        return sequence
+
+    sequence = None
+    if entry is None:
+        with open_cloud(cloud_path) as cloud:
+            n_points_input = cloud.info.n_points
+        sequence = slice_now()
+        index = sequence.index_arrays()
+        run.store("slice", key, index, {"n_points_input": n_points_input})
+    else:
+        index, n_points_input = entry.arrays, int(entry.meta["n_points_input"])
+        run.count("slice", reused=1)
+        log.info("slice: %d scans re-used from the stage cache", len(index["scan_id"]))
+    slices = CachedSlices(run, key, cloud_path, index, n_points_input, sequence, slice_now)
+    try:
+        yield slices
+    finally:
+        slices.close()
+
+
+# --------------------------------------------------------------------------- stage results as arrays
+
+
+def scan_planes_to_arrays(station: Any, planes: tuple[Plane, ...]) -> dict[str, np.ndarray]:
+    """One scan's station and planes as plain arrays (one ``planes`` cache entry)."""
+    return {**{f"station.{k}": v for k, v in stations_to_arrays([station]).items()},
+            **{f"planes.{k}": v for k, v in planes_to_arrays([planes]).items()}}
+
+
+def scan_planes_from_arrays(arrays: Mapping[str, np.ndarray]) -> tuple[Any, tuple[Plane, ...]]:
+    """Inverse of :func:`scan_planes_to_arrays`: (station, planes)."""
+    def part(prefix: str) -> dict[str, np.ndarray]:
+        return {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
+
+    return stations_from_arrays(part("station."))[0], planes_from_arrays(part("planes."))[0]
+
+
+def content_parts(stations: Sequence[Any], planes: Sequence[tuple[Plane, ...]]) -> list[Any]:
+    """Key parts that stand for the stations and planes themselves (their arrays, by name)."""
+    arrays = {**{f"station.{k}": v for k, v in stations_to_arrays(stations).items()},
+              **{f"planes.{k}": v for k, v in planes_to_arrays(planes).items()}}
+    return [part for name in sorted(arrays) for part in (name, arrays[name])]
+
+
+def dataclass_parts(obj: Any) -> list[Any]:
+    """Key parts that stand for a dataclass of arrays, poses and plain values (e.g. a drift
+    correction with its trajectory), field by field, so that a field added later is covered."""
+    parts: list[Any] = [type(obj).__qualname__]
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        parts.append(f.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, (type, Pose)):
+            parts.extend(dataclass_parts(value))
+        else:
+            parts.append(value)
+    return parts
