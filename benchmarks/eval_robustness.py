@@ -49,6 +49,19 @@ def station_errors(out: Path, truth_path: Path) -> dict:
     return {"rms_mm": float(np.sqrt(np.mean(err**2))), "max_mm": float(err.max())}
 
 
+def trajectory_errors(out: Path, truth_path: Path) -> dict:
+    """Corrected trajectory (every row) against the truth after a rigid fit: the jumps' rows too."""
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.report import rigid_fit
+
+    corrected = read_trajectory(out / "trajectory_corrected.txt")
+    xyz = corrected.poses.t_xyz
+    truth = read_trajectory(truth_path).pose_at(corrected.stamps_s).t_xyz
+    R, tt = rigid_fit(xyz, truth)
+    err = np.linalg.norm(xyz @ R.T + tt - truth, axis=1) * 1000.0
+    return {"rms_mm": float(np.sqrt(np.mean(err**2))), "max_mm": float(err.max())}
+
+
 def with_jumps(data: Path, folder: Path, jump_times: tuple[float, float]) -> tuple[Path, Path]:
     """Trajectory and cloud with a 0.5 m jump (x) between the two times, as a SLAM failure leaves them."""
     import laspy
@@ -125,6 +138,9 @@ def run(name: str, work: Path, inject: bool = False, jumps: bool = False, seed: 
         links = list(csv.DictReader(f))
     return {
         "errors_after_rigid_fit": station_errors(work / "out", data / "truth_trajectory.txt"),
+        "corrected_trajectory_errors_after_rigid_fit": trajectory_errors(work / "out", data / "truth_trajectory.txt"),
+        "trajectory_jumps_found": [{k: j[k] for k in ("t", "step_m", "step_deg")}
+                                   for j in report.get("trajectory_jumps", [])],
         "injected_wrong_matches": len(injected),
         "rejected_matches_pairwise": int(sum(int(r["n_rejected_matches"]) for r in links)),
         "links_rejected": int(sum(r["status"] == "rejected" for r in links)),

@@ -13,13 +13,19 @@ spline through the stations' positions, not the trajectory's own position: then 
 that is one rigid transform for all stations (e.g. what is left of a rough initial transform) is
 reproduced exactly between them, and a slowly turning one carries no lever arm to the sway and
 the turns of the path between stations (a tenth of a degree over a metre is 2 mm).
+
+Jumps of the trajectory (:mod:`kinreg.discontinuity`) are taken out first: a point or pose after
+jumps ``S_1 ... S_k`` is mapped by ``S_1^-1 ... S_k^-1`` (a point inside a jump's sample interval,
+which the SLAM output interpolated across the step, by the matching fraction of it), and the
+smooth correction then works on the stations' poses without the jumps.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -38,6 +44,9 @@ from kinreg.io.atomic import atomic_path
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import Trajectory
 
+if TYPE_CHECKING:
+    from kinreg.discontinuity import TrajectoryJump
+
 
 @dataclass(frozen=True, eq=False)
 class DriftCorrection:
@@ -50,15 +59,23 @@ class DriftCorrection:
     delta_m: FloatArray
     trajectory: Trajectory
     pivot_xyz: FloatArray | None = None
+    jump_times_s: FloatArray | None = None  # (m, 2): each jump's sample interval (before, at), in time order
+    jump_steps: Pose | None = None  # (m,): the steps S (T_traj = S . T_continuous from the jump on)
 
     @classmethod
-    def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose,
-                      trajectory: Trajectory) -> DriftCorrection:
-        """From the initial and adjusted poses of the time-stamped stations (sorted by time)."""
+    def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose, trajectory: Trajectory,
+                      jumps: Sequence[TrajectoryJump] = ()) -> DriftCorrection:
+        """From the initial and adjusted poses of the time-stamped stations (sorted by time).
+        With ``jumps``, ``initial`` are the stations' poses without them (:meth:`without_jumps`)."""
         order = np.argsort(stamps_s)
         q_corr = quat_multiply(adjusted.quat_wxyz[order], initial.inverse().quat_wxyz[order])
         return cls(np.asarray(stamps_s, dtype=np.float64)[order], quat_to_rotvec(q_corr),
-                   adjusted.t_xyz[order] - initial.t_xyz[order], trajectory, initial.t_xyz[order])
+                   adjusted.t_xyz[order] - initial.t_xyz[order], trajectory, initial.t_xyz[order],
+                   *jump_arrays(jumps))
+
+    def without_jumps(self, stamps_s: FloatArray) -> Pose:
+        """Per time (n,): the map that takes the jumps out (see :func:`jump_removal`)."""
+        return jump_removal(self.jump_times_s, self.jump_steps, stamps_s)
 
     def _at(self, query_s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Rotation vectors, shifts and pivots (each (n, 3)) at the times ``query_s`` (n,)."""
@@ -80,12 +97,18 @@ class DriftCorrection:
 
     def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
         """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,)."""
+        if self.jump_steps is not None:
+            xyz = self.without_jumps(stamps_s).apply(xyz)
         rotvec, delta, pivot = self._at(stamps_s)
         R = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix
         return np.einsum("nij,nj->ni", R, xyz - pivot) + pivot + delta
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""
+        if self.jump_steps is not None:
+            unjumped = self.without_jumps(trajectory.stamps_s).compose(trajectory.poses)
+            trajectory = Trajectory(trajectory.stamps_s, unjumped, trajectory.source, trajectory.extra,
+                                    trajectory.extra_names)
         rotvec, delta, pivot = self._at(trajectory.stamps_s)
         q_corr = rotvec_to_quat(rotvec)
         q = quat_normalize(quat_multiply(q_corr, trajectory.poses.quat_wxyz))
@@ -97,6 +120,48 @@ class DriftCorrection:
     def magnitude(self) -> tuple[FloatArray, FloatArray]:
         """Per station: shift [m] and rotation [rad] of the correction."""
         return np.linalg.norm(self.delta_m, axis=1), np.linalg.norm(self.rotvec, axis=1)
+
+
+def jump_removal(jump_times_s: FloatArray | None, jump_steps: Pose | None, stamps_s: FloatArray) -> Pose:
+    """Per time (n,): ``S_1^-1 ... S_k^-1`` for the jumps before it (identity before the first).
+    ``jump_times_s`` (m, 2) are the jumps' sample intervals (before, at) in time order, ``jump_steps``
+    (m,) their steps. A time inside an interval gets the fraction of the step that interpolating
+    the trajectory across it gives."""
+    t = np.asarray(stamps_s, dtype=np.float64)
+    removal = _identity(len(t))
+    if jump_steps is None or jump_times_s is None:
+        return removal
+    for k in range(len(jump_steps)):
+        before, at = jump_times_s[k]
+        step = jump_steps[k]
+        share = np.clip((t - before) / max(at - before, 1e-12), 0.0, 1.0)
+        full = share >= 1.0
+        if full.any():
+            removal = _replace_rows(removal, full, removal[full].compose(step.inverse()))
+        inside = (share > 0.0) & ~full
+        if inside.any():
+            partial = Pose.exp(share[inside, None] * step.log()[None, :])
+            removal = _replace_rows(removal, inside, removal[inside].compose(partial.inverse()))
+    return removal
+
+
+def jump_arrays(jumps: Sequence[TrajectoryJump]) -> tuple[FloatArray | None, Pose | None]:
+    """The jumps in time order as (sample intervals (m, 2), steps (m,)); ``(None, None)`` without."""
+    ordered = sorted(jumps, key=lambda j: j.t_s)
+    if not ordered:
+        return None, None
+    return (np.array([(j.t_before_s, j.t_s) for j in ordered], dtype=np.float64),
+            Pose.stack([j.step for j in ordered]))
+
+
+def _identity(n: int) -> Pose:
+    return Pose(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), np.zeros((n, 3)))
+
+
+def _replace_rows(poses: Pose, rows: np.ndarray, new: Pose) -> Pose:
+    quat, t_xyz = poses.quat_wxyz.copy(), poses.t_xyz.copy()
+    quat[rows], t_xyz[rows] = new.quat_wxyz, new.t_xyz
+    return Pose(quat, t_xyz)
 
 
 def write_corrected_las(

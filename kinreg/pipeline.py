@@ -15,6 +15,7 @@ from kinreg.block import adjust_block, loose_parts
 from kinreg.cache import links_from_arrays, links_to_arrays
 from kinreg.config import (
     Disconnected,
+    DiscontinuityConfig,
     InputConfig,
     KinregConfig,
     PlanesConfig,
@@ -22,7 +23,8 @@ from kinreg.config import (
     StaticDatum,
     format_toml,
 )
-from kinreg.correction import DriftCorrection, write_corrected_las
+from kinreg.correction import DriftCorrection, jump_arrays, jump_removal, write_corrected_las
+from kinreg.discontinuity import TrajectoryJump, detect_jumps
 from kinreg.errors import ConfigError, EstimationError
 from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
 from kinreg.geometry import Pose
@@ -347,6 +349,38 @@ def adjust_network(
     return AdjustedNetwork(with_window_bias(result, stations, rates), rates, "; ".join(datum), tuple(ties))
 
 
+def take_out_jumps(
+    stations: list[Station], planes: list[tuple[Plane, ...]], trajectory: Trajectory, config: DiscontinuityConfig,
+) -> tuple[list[Station], list[tuple[Plane, ...]], list[TrajectoryJump]]:
+    """Find jumps in the trajectory (:func:`~kinreg.discontinuity.detect_jumps`) and take them out
+    of the quasi-static stations' initial poses, so that the trajectory links and the pairwise
+    priors no longer carry them. A scan's points are in its own frame whatever the trajectory
+    did, except where its window contains a jump: those points were georeferenced on both sides
+    of the step, so that scan keeps only its trajectory links (its planes are dropped). The
+    corrected cloud and trajectory take the jumps out by time (:class:`DriftCorrection`)."""
+    if not config.detect:
+        return stations, planes, []
+    jumps = detect_jumps(trajectory, config)
+    if not jumps:
+        return stations, planes, []
+    intervals, steps = jump_arrays(jumps)
+    times = np.array([s.t_s for s in stations])
+    quasi = np.flatnonzero([s.kind is ScanKind.QUASI_STATIC for s in stations])
+    removal = jump_removal(intervals, steps, times[quasi])
+    stations, planes = list(stations), list(planes)
+    for n, k in enumerate(quasi):
+        s = stations[k]
+        stations[k] = dataclasses.replace(s, T_obj_scan=removal[n].compose(s.T_obj_scan))
+        if any(s.t_start_s < j.t_s and j.t_before_s < s.t_end_s for j in jumps):
+            log.warning("scan %s contains the trajectory jump at %.2f s: not linked by planes", s.name,
+                        next(j.t_s for j in jumps if s.t_start_s < j.t_s and j.t_before_s < s.t_end_s))
+            planes[k] = ()
+    for j in jumps:
+        log.warning("the trajectory jumps by %.3f m and %.2f deg at %.3f s (row %d): taken out "
+                    "(set [jumps] detect = false to keep it)", j.step_m, j.step_deg, j.t_s, j.index)
+    return stations, planes, jumps
+
+
 def _axis_name(v: np.ndarray) -> str:
     k = int(np.argmax(np.abs(v)))
     return "xyz"[k] if abs(v[k]) > 0.99 else "(" + ", ".join(f"{c:.2f}" for c in v) + ")"
@@ -427,6 +461,7 @@ def process(
         lap("slice")
         stations, planes = detect_planes_cached(slices, config.planes, progress, executor, run)
         stations, trajectory = to_reference_frame(stations, trajectory, references)  # [initial_transform]
+        stations, planes, jumps = take_out_jumps(stations, planes, trajectory, config.jumps)
         if inputs.static is not None:
             static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes,
                                                                   progress, run)
@@ -444,7 +479,7 @@ def process(
         poses_initial = result.poses_initial
         station_times = np.array([s.t_s for s in stations])
         correction = DriftCorrection.from_stations(station_times[quasi], poses_initial[quasi], result.poses[quasi],
-                                                   trajectory)
+                                                   trajectory, jumps)
         corrected_trajectory = correction.apply_to_trajectory(trajectory)
         # The large outputs are keyed by what they are made of; one still in the folder is kept.
         T_obj_cloud = None if references is None else references.T_ref_traj
@@ -488,6 +523,9 @@ def process(
     )
     report["inputs"]["static"] = None if inputs.static is None else str(inputs.static)
     report["inputs"]["reference"] = None if inputs.reference is None else str(inputs.reference)
+    report["trajectory_jumps"] = [
+        {"t": j.t_s, "row": j.index, "step_m": j.step_m, "step_deg": j.step_deg,
+         "translation_m": j.translation_m.tolist(), "significance": j.significance} for j in jumps]
     if references is not None:
         report["reference"] = {"accuracy_m": references.accuracy_m, "n_ties": len(network.ties),
                                "planes": as_built(network.ties, result.poses, planes, references)}
