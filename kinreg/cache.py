@@ -53,7 +53,7 @@ from kinreg.types import Link, LinkStatus, Plane, PlaneMatch, ScanKind, ScanWind
 log = logging.getLogger(__name__)
 
 # Bump when a stored layout or the meaning of a key part changes (old entries are then ignored).
-CACHE_SCHEMA_VERSION = 1
+CACHE_SCHEMA_VERSION = 2
 
 Arrays = dict[str, np.ndarray]
 
@@ -308,6 +308,7 @@ def planes_to_arrays(planes: Sequence[tuple[Plane, ...]]) -> Arrays:
         "area_m2": _f([p.area_m2 for p in flat]),
         "n_points": np.array([p.n_points for p in flat], dtype=np.int64),
         "rms_m": _f([p.rms_m for p in flat]),
+        "t_offset_s": _f([p.t_offset_s for p in flat]),
     }
 
 
@@ -318,7 +319,7 @@ def planes_from_arrays(a: Mapping[str, np.ndarray]) -> list[tuple[Plane, ...]]:
         Plane(int(a["scan_id"][k]), int(a["plane_id"][k]), a["normal"][k].copy(), float(a["d_m"][k]),
               a["centroid_xyz"][k].copy(), a["basis_uv"][k].copy(), a["cov_uvd"][k].copy(),
               a["hull_xyz"][hull_at[k]:hull_at[k + 1]].copy(), float(a["area_m2"][k]),
-              int(a["n_points"][k]), float(a["rms_m"][k]))
+              int(a["n_points"][k]), float(a["rms_m"][k]), float(a["t_offset_s"][k]))
         for k in range(len(a["scan_id"]))
     ]
     at = _offsets(a["scan_plane_counts"])
@@ -399,6 +400,7 @@ def stations_to_arrays(stations: Sequence[Any]) -> Arrays:
         "times_s": _f([(s.t_s, s.t_start_s, s.t_end_s, s.tau_s) for s in stations], (4,)),
         **_poses_to_arrays("T_obj_scan", [s.T_obj_scan for s in stations]),
         "n_points": np.array([s.n_points for s in stations], dtype=np.int64),
+        "run": np.array([s.run for s in stations], dtype=np.int64),
     }
 
 
@@ -407,10 +409,11 @@ def stations_from_arrays(a: Mapping[str, np.ndarray]) -> list[Any]:
     from kinreg.network import Station  # network imports the stages; keep this module light
 
     t = a["times_s"]
+    runs = a["run"] if "run" in a else np.zeros(len(a["scan_id"]), dtype=np.int64)
     return [
         Station(int(a["scan_id"][k]), str(a["name"][k]), ScanKind(str(a["kind"][k])), float(t[k, 0]),
                 float(t[k, 1]), float(t[k, 2]), _pose_at("T_obj_scan", a, k), int(a["n_points"][k]),
-                float(t[k, 3]))
+                float(t[k, 3]), int(runs[k]))
         for k in range(len(a["scan_id"]))
     ]
 

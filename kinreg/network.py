@@ -1,6 +1,9 @@
 """The network of stations: pairwise links over candidate pairs, and the block's observations.
 
 A *station* is a scan with a pose ``T_obj_scan`` (from the trajectory for quasi-static scans).
+Quasi-static stations may come from several runs (trajectory + cloud each) in one frame: the
+trajectory ties only consecutive stations of the same run; stations of different runs are tied by
+their planes alone, like loop closures.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.executor import ExecutorContext, in_process, parallel_map
@@ -34,7 +38,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True, eq=False)
 class Station:
-    """A node of the network: a scan's id, kind, time (nan for static) and initial pose."""
+    """A node of the network: a scan's id, kind, time (nan for static) and initial pose, and the
+    run (0-based index of the trajectory + cloud) a quasi-static station was sliced from."""
 
     scan_id: int
     name: str
@@ -45,16 +50,22 @@ class Station:
     T_obj_scan: Pose
     n_points: int
     tau_s: float = float("nan")  # effective time offset of the scan's planes from t_s (window bias)
+    run: int = 0
 
 
 def station_pairs(stations: Sequence[Station], matching: MatchingConfig,
                   static: StaticConfig | None = None) -> list[tuple[int, int]]:
-    """Candidate pairs: sequence neighbours and nearby stations among the quasi-static stations,
-    and every station within ``static.link_radius_m`` of a static one."""
+    """Candidate pairs: sequence neighbours and nearby stations among the quasi-static stations of
+    each run, stations of different runs within ``matching.radius_m`` of each other, and every
+    station within ``static.link_radius_m`` of a static one."""
     positions = np.array([s.T_obj_scan.t_xyz for s in stations])
     quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])
-    qs = np.flatnonzero(quasi)
-    pairs = {(int(qs[a]), int(qs[b])) for a, b in candidate_pairs(positions[qs], matching)}
+    runs = np.array([s.run for s in stations])
+    pairs: set[tuple[int, int]] = set()
+    for run in np.unique(runs[quasi]):
+        qs = np.flatnonzero(quasi & (runs == run))
+        pairs |= {(int(qs[a]), int(qs[b])) for a, b in candidate_pairs(positions[qs], matching)}
+    pairs |= _cross_run_pairs(positions, runs, quasi, matching.radius_m)
     if static is not None and (~quasi).any():
         for k in np.flatnonzero(~quasi):
             near = np.flatnonzero(np.linalg.norm(positions - positions[k], axis=1) <= static.link_radius_m)
@@ -62,11 +73,24 @@ def station_pairs(stations: Sequence[Station], matching: MatchingConfig,
     return sorted(pairs)
 
 
+def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
+                     radius_m: float) -> set[tuple[int, int]]:
+    """Pairs of quasi-static stations of different runs whose centres are within ``radius_m``."""
+    qs = np.flatnonzero(quasi)
+    if len(np.unique(runs[qs])) < 2 or radius_m <= 0:
+        return set()
+    near = cKDTree(positions[qs]).query_pairs(radius_m)
+    return {(int(min(qs[a], qs[b])), int(max(qs[a], qs[b]))) for a, b in near if runs[qs[a]] != runs[qs[b]]}
+
+
 def link_pair(
     i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
+    rates: DriftRates | None = None,
 ) -> Link | None:
-    """Match and adjust one candidate pair; ``None`` where too few planes match."""
+    """Match and adjust one candidate pair; ``None`` where too few planes match. The planes'
+    covariances get the drift inside their windows (:func:`with_window_deformation`) at ``rates``
+    (the drift model's prior rates without them)."""
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
     matches = match_planes(planes_i, planes_j, T_prior, matching)
     sigma = None
@@ -88,6 +112,11 @@ def link_pair(
         return None
     if static is not None and ScanKind.STATIC in (si.kind, sj.kind):
         sigma = np.array([static.prior_sigma_m] * 3 + [np.radians(static.prior_sigma_deg)] * 3)
+    elif si.run != sj.run:
+        sigma = np.array([pairwise.cross_run_prior_sigma_m] * 3 + [np.radians(pairwise.cross_run_prior_sigma_deg)] * 3)
+    rates = rates or DriftRates.from_config(drift)
+    planes_i = with_window_deformation(planes_i, si.T_obj_scan, rates)
+    planes_j = with_window_deformation(planes_j, sj.T_obj_scan, rates)
     return adjust_pair(i, j, planes_i, planes_j, T_prior, _dt(si, sj), matches, drift, pairwise, sigma_prior=sigma)
 
 
@@ -110,16 +139,19 @@ def link_stations(
     progress: Progress | None = None,
     static: StaticConfig | None = None,
     executor: ExecutorContext | None = None,
+    rates: DriftRates | None = None,
 ) -> list[Link]:
     """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
     batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
     with fewer than ``matching.min_matches`` plane matches are not linked. A pair with a static
-    station has no trajectory between them: its prior comes from ``static.prior_sigma_*``.
+    station has no trajectory between them: its prior comes from ``static.prior_sigma_*``; nor has
+    a pair of two runs: its prior comes from ``pairwise.cross_run_prior_sigma_*``.
+    ``rates`` are the drift rates for the planes' window deformation (default: the prior's).
     Returns the links in pair order, whatever the number of workers.
     """
     progress = progress or NullProgress()
     pairs = station_pairs(stations, matching, static)
-    configs = (matching, drift, pairwise, static)
+    configs = (matching, drift, pairwise, static, rates)
     batches = [pairs[k:k + _PAIRS_PER_TASK] for k in range(0, len(pairs), _PAIRS_PER_TASK)]
     progress.start("link", total=len(batches), unit="batches")
 
@@ -143,9 +175,9 @@ def _directions(matches: tuple[PlaneMatch, ...], planes_i: tuple[Plane, ...]) ->
 
 
 def _dt(a: Station, b: Station) -> float:
-    """Time between two stations; static stations are treated as far apart in time (no prior
-    information from the trajectory ties them)."""
-    if np.isnan(a.t_s) or np.isnan(b.t_s):
+    """Time between two stations; static stations and stations of two runs are treated as far
+    apart in time (no prior information from the trajectory ties them)."""
+    if np.isnan(a.t_s) or np.isnan(b.t_s) or a.run != b.run:
         return float("inf")
     return abs(b.t_s - a.t_s)
 
@@ -193,11 +225,11 @@ def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRa
 
 
 def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
-                       band_m: float) -> float:
-    """RMS over a scan's planes of (mean time of the plane's points - ``t_s``) [s]; the points of
-    a plane are those within ``band_m`` of it and inside its extent. ``nan`` without planes."""
-    offsets = []
-    for plane in planes:
+                       band_m: float) -> np.ndarray:
+    """Per plane: the mean time of its points minus ``t_s`` [s]; the points of a plane are those
+    within ``band_m`` of it and inside its extent (``nan`` for a plane without such points)."""
+    offsets = np.full(len(planes), np.nan)
+    for k, plane in enumerate(planes):
         near = np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m
         local = points_xyz[near] - plane.centroid_xyz
         hull = plane.hull_xyz - plane.centroid_xyz
@@ -206,8 +238,39 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             lo, hi = (hull @ axis).min(), (hull @ axis).max()
             inside &= (local @ axis >= lo) & (local @ axis <= hi)
         if inside.any():
-            offsets.append(float(np.mean(stamps_s[near][inside])) - t_s)
-    return float(np.sqrt(np.mean(np.square(offsets)))) if offsets else float("nan")
+            offsets[k] = float(np.mean(stamps_s[near][inside])) - t_s
+    return offsets
+
+
+def rms_time_offset(offsets: np.ndarray) -> float:
+    """RMS of the planes' time offsets (``nan`` without any)."""
+    finite = offsets[np.isfinite(offsets)]
+    return float(np.sqrt(np.mean(np.square(finite)))) if len(finite) else float("nan")
+
+
+def with_window_deformation(planes: Sequence[Plane], T_obj_scan: Pose, rates: DriftRates) -> tuple[Plane, ...]:
+    """The planes with the drift inside the scan's window added to their covariances: a plane
+    seen ``t_offset_s`` from the centre time is moved by the trajectory's drift over that time
+    (position ``rate * |t_offset|`` along its normal, rotation ``rate * |t_offset|`` about its
+    tangents; the drift rates are per object axis). Each plane of a scan moves by its own time
+    offset, so the scan is deformed, not just displaced: on simulated runs the offsets of small
+    wall patches seen 2 s from the centre were off by 2 mm, which this predicts to 0.3 mm.
+    """
+    R = T_obj_scan.rotation_matrix
+    out = []
+    for p in planes:
+        tau = abs(p.t_offset_s) if np.isfinite(p.t_offset_s) else 0.0
+        if tau == 0.0:
+            out.append(p)
+            continue
+        n_obj = R @ p.normal
+        var_d = float(np.sum((n_obj * rates.pos_m_per_s) ** 2)) * tau**2
+        tangents = p.basis_uv @ R.T  # rows in object axes
+        # a rotation about the tangent direction orthogonal to u tilts the normal towards u
+        var_uv = [float(np.sum((np.cross(n_obj, t) * rates.rot_rad_per_s) ** 2)) * tau**2 for t in tangents]
+        cov = p.cov_uvd + np.diag([var_uv[0], var_uv[1], var_d])
+        out.append(replace(p, cov_uvd=cov))
+    return tuple(out)
 
 
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates) -> DriftRates:
@@ -229,6 +292,8 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     rot = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz)
     pos_v, rot_v, pos_noise, rot_noise = [], [], [], []
     for a, b in itertools.pairwise(seq):
+        if stations[a].run != stations[b].run:
+            continue  # consecutive stations of the same run only: runs are not tied by a trajectory
         dt = stations[b].t_s - stations[a].t_s
         cov = noise.get((a, b), np.zeros((6, 6)))
         R = result.poses.rotation_matrix[a]
@@ -236,6 +301,8 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
         rot_noise.append(np.diag(R @ cov[3:, 3:] @ R.T) / dt**2)
         pos_v.append((shift[b] - shift[a]) / dt)
         rot_v.append((rot[b] - rot[a]) / dt)
+    if len(pos_v) < 2:
+        return prior
     # Median-based (1.4826 MAD about zero): a jump in the trajectory is one huge change, not drift.
     pos_rate = np.sqrt(np.maximum((1.4826 * np.median(np.abs(pos_v), axis=0)) ** 2
                                   - np.median(pos_noise, axis=0), 0.0))
@@ -265,8 +332,8 @@ def block_observations(
     stations: Sequence[Station], links: Sequence[Link], rates: DriftRates
 ) -> list[RelativeObservation]:
     """The block's observations: every usable link's plane-only information, and the trajectory's
-    relative pose between consecutive quasi-static stations, once, weighted by the drift rates
-    (plus both scans' window bias: the block's unknowns are scan frames)."""
+    relative pose between consecutive quasi-static stations of the same run, once, weighted by the
+    drift rates (plus both scans' window bias: the block's unknowns are scan frames)."""
     observations = [
         RelativeObservation(ObservationKind.PLANES, link.scan_i, link.scan_j, link.T_i_j_planes,
                             link.info_planes, link.rank)
@@ -276,6 +343,8 @@ def block_observations(
     sequence = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
     for a, b in itertools.pairwise(sequence):
         sa, sb = stations[a], stations[b]
+        if sa.run != sb.run:
+            continue  # no trajectory between two runs
         Z = sa.T_obj_scan.inverse().compose(sb.T_obj_scan)
         cov = (rates.covariance(_dt(sa, sb), sa.T_obj_scan) + window_bias_covariance(sa, sa.T_obj_scan, rates)
                + window_bias_covariance(sb, sa.T_obj_scan, rates))

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from kinreg.config import (
     StaticDatum,
     format_toml,
 )
-from kinreg.correction import DriftCorrection, jump_arrays, jump_removal, write_corrected_las
+from kinreg.correction import jump_arrays, jump_removal, write_corrected_las
 from kinreg.discontinuity import TrajectoryJump, detect_jumps
 from kinreg.errors import ConfigError, EstimationError
 from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
@@ -40,6 +41,7 @@ from kinreg.network import (
     estimate_drift_rates,
     link_stations,
     plane_time_offsets,
+    rms_time_offset,
     station_pairs,
     with_window_bias,
 )
@@ -67,6 +69,17 @@ from kinreg.resume import (
     scan_planes_from_arrays,
     scan_planes_to_arrays,
     sliced_run,
+)
+from kinreg.runs import (
+    RunInputs,
+    adjusted_scans,
+    inputs_report,
+    label_run,
+    output_files,
+    run_correction,
+    run_output_names,
+    slicing_report,
+    trajectory_plot,
 )
 from kinreg.slicing import QuasiStaticSequence, SlicingSummary, slice_quasi_static
 from kinreg.types import (
@@ -131,12 +144,36 @@ def slice_to_e57(
 
 @dataclass(frozen=True)
 class ProcessInputs:
-    """What ``kinreg process`` reads."""
+    """What ``kinreg process`` reads: one or several runs (``trajectory`` and ``cloud`` are the
+    first, ``more_runs`` the others, in order; see :mod:`kinreg.runs`), static scans, reference planes."""
 
     trajectory: Path
     cloud: Path
     static: Path | None = None
     reference: Path | None = None
+    more_runs: tuple[RunInputs, ...] = ()
+
+    @property
+    def runs(self) -> tuple[RunInputs, ...]:
+        return (RunInputs(Path(self.trajectory), Path(self.cloud)), *self.more_runs)
+
+    @classmethod
+    def from_runs(cls, trajectories: Sequence[str | Path], clouds: Sequence[str | Path],
+                  static: Path | None = None, reference: Path | None = None) -> ProcessInputs:
+        """Runs paired in order: ``trajectories[k]`` with ``clouds[k]``. Raises :class:`ConfigError`
+        when the counts differ, none is given, or a file is given twice."""
+        if len(trajectories) != len(clouds):
+            raise ConfigError(f"{len(trajectories)} trajectories (--trajectory) but {len(clouds)} clouds (--cloud): "
+                              "give one cloud per trajectory, paired in order")
+        if not trajectories:
+            raise ConfigError("no run given: give a trajectory (--trajectory) and its cloud (--cloud)")
+        runs = [RunInputs(Path(t), Path(c)) for t, c in zip(trajectories, clouds, strict=True)]
+        for paths in ([r.trajectory for r in runs], [r.cloud for r in runs]):
+            seen = [path.resolve() for path in paths]
+            twice = next((path for k, path in enumerate(paths) if seen[k] in seen[:k]), None)
+            if twice is not None:
+                raise ConfigError("given for two runs", twice)
+        return cls(runs[0].trajectory, runs[0].cloud, static, reference, tuple(runs[1:]))
 
 
 @dataclass(frozen=True)
@@ -156,17 +193,19 @@ class ProcessSummary:
     timings_s: dict[str, float]
     # per stage: {"reused": n, "computed": m} items (scans, files) of this run
     stage_cache: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
+    n_runs: int = 1
 
 
 OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "corrected.laz", "sequence.e57",
                 "report.json", "report.html", "config.toml")
 
 
-def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False) -> RunCache:
+def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False,
+                          outputs: tuple[str, ...] = OUTPUT_FILES) -> RunCache:
     """Create the output folder and open its stage cache. A folder that already holds kinreg
-    results or a stage cache is refused unless ``resume`` (re-use the cache) or ``overwrite``
-    (start afresh: the cache is cleared); see :func:`kinreg.resume.open_run_cache`."""
-    run = open_run_cache(out_dir, OUTPUT_FILES, overwrite=overwrite, resume=resume)
+    results (any of ``outputs``) or a stage cache is refused unless ``resume`` (re-use the cache)
+    or ``overwrite`` (start afresh: the cache is cleared); see :func:`kinreg.resume.open_run_cache`."""
+    run = open_run_cache(out_dir, outputs, overwrite=overwrite, resume=resume)
     check_writable_target(out_dir / "stations.csv", overwrite=True)
     return run
 
@@ -179,7 +218,10 @@ def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[St
     found = detect_planes(scan, config)
     tau = float("nan")
     if scan.stamps_s is not None:
-        tau = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
+        offsets = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
+        found = tuple(dataclasses.replace(p, t_offset_s=float(t)) if np.isfinite(t) else p
+                      for p, t in zip(found, offsets, strict=True))
+        tau = rms_time_offset(offsets)
     station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
                       scan.T_obj_scan, len(scan), tau)
     return station, found
@@ -282,6 +324,7 @@ class AdjustedNetwork:
     rates: DriftRates
     datum: str
     ties: tuple[Tie, ...]
+    links: tuple[Link, ...]  # the links the result rests on (linked again when the drift was faster)
 
 
 def adjust_network(
@@ -292,10 +335,12 @@ def adjust_network(
     static: StaticConfig | None,
     config: KinregConfig,
     progress: Progress,
+    executor: ExecutorContext | None = None,
 ) -> AdjustedNetwork:
     """The block adjustment with its datum: static scans (fixed or observed), reference planes
     (tie planes), or else the first station. The first adjustment also measures the drift; where
-    it is faster than the prior, the network is adjusted again with the measured rates so that
+    it is faster than the prior, the pairs are linked again (on ``executor``) and the network is
+    adjusted again with the measured rates, so that the planes' window deformation and the
     stretches carried by the trajectory alone get honest sigmas."""
     poses_initial = Pose.stack([s.T_obj_scan for s in stations])
     is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
@@ -344,9 +389,15 @@ def adjust_network(
     rates = estimate_drift_rates(stations, result, prior_rates)
     if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
             rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
+        # Second pass: the planes of a scan are deformed by the drift inside its window, by the
+        # measured rates rather than the prior ones, so the pairs are linked again with those.
+        log.info("drift faster than the prior: linking again with the measured rates")
+        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress,
+                              static, executor, rates)
         result = adjust_block(poses_initial, block_observations(stations, links, rates) + datum_obs, fixed,
                               config.block, progress)
-    return AdjustedNetwork(with_window_bias(result, stations, rates), rates, "; ".join(datum), tuple(ties))
+    return AdjustedNetwork(with_window_bias(result, stations, rates), rates, "; ".join(datum), tuple(ties),
+                           tuple(links))
 
 
 def take_out_jumps(
@@ -400,22 +451,6 @@ def _check_reference_datum(ties: list[Tie], references: ReferencePlanes) -> None
                           "planes in that direction, [[link]] entries, or static scans", references.source)
 
 
-def _adjusted_scans(sequence: QuasiStaticSequence, poses: Pose) -> Iterator[Scan]:
-    for scan in sequence.iter_scans():
-        yield replace(scan, T_obj_scan=poses[scan.scan_id])
-
-
-def _trajectory_plot(trajectory: Trajectory, corrected: Trajectory, max_points: int = 2000) -> dict[str, list[float]]:
-    step = max(1, len(trajectory) // max_points)
-    return {
-        "t": (trajectory.stamps_s[::step] - trajectory.t_start_s).tolist(),
-        "x_before": trajectory.poses.t_xyz[::step, 0].tolist(),
-        "y_before": trajectory.poses.t_xyz[::step, 1].tolist(),
-        "x_after": corrected.poses.t_xyz[::step, 0].tolist(),
-        "y_after": corrected.poses.t_xyz[::step, 1].tolist(),
-    }
-
-
 def process(
     inputs: ProcessInputs,
     out_dir: str | Path,
@@ -450,18 +485,31 @@ def process(
         timings[stage] = now - clock
         clock = now
 
-    run = prepare_output_folder(out, overwrite, resume)
+    runs = inputs.runs  # each run is read and sliced on its own (kinreg.runs)
+    outputs = output_files(out, OUTPUT_FILES, len(runs))
+    run = prepare_output_folder(out, overwrite, resume, outputs)
     references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
-    trajectory = read_input_trajectory(inputs.trajectory, config.input)
-    if inputs.cloud.suffix.lower() not in (".las", ".laz"):
-        raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", inputs.cloud)
-    with sliced_run(run, inputs.trajectory, inputs.cloud, trajectory, config, progress) as slices, \
-            make_executor(workers, scheduler) as executor:
-        n_points_input = slices.n_points_input
+    trajectories = [read_input_trajectory(r.trajectory, config.input) for r in runs]
+    for r in runs:
+        if r.cloud.suffix.lower() not in (".las", ".laz"):
+            raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", r.cloud)
+    with contextlib.ExitStack() as stack:
+        sliced = [stack.enter_context(sliced_run(run, r.trajectory, r.cloud, trajectories[k], config, progress, k))
+                  for k, r in enumerate(runs)]
+        executor = stack.enter_context(make_executor(workers, scheduler))
         lap("slice")
-        stations, planes = detect_planes_cached(slices, config.planes, progress, executor, run)
-        stations, trajectory = to_reference_frame(stations, trajectory, references)  # [initial_transform]
-        stations, planes, jumps = take_out_jumps(stations, planes, trajectory, config.jumps)
+        stations: list[Station] = []
+        planes: list[tuple[Plane, ...]] = []
+        jumps: list[list[TrajectoryJump]] = []  # one list per run
+        for k, slices in enumerate(sliced):
+            run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run)
+            run_stations, trajectories[k] = to_reference_frame(run_stations, trajectories[k],
+                                                               references)  # [initial_transform]
+            run_stations, run_planes = label_run(run_stations, run_planes, k, len(stations), len(runs))
+            run_stations, run_planes, run_jumps = take_out_jumps(run_stations, run_planes, trajectories[k],
+                                                                 config.jumps)
+            stations, planes = stations + run_stations, planes + run_planes
+            jumps.append(run_jumps)
         if inputs.static is not None:
             static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes,
                                                                   progress, run)
@@ -471,61 +519,59 @@ def process(
         links = link_stations_cached(stations, planes, config, static, progress, executor, run)
         n_candidates = len(station_pairs(stations, config.matching, static))
         lap("link")
-        network = adjust_network(stations, planes, links, references, static, config, progress)
+        network = adjust_network(stations, planes, links, references, static, config, progress, executor)
+        links = list(network.links)
         result, rates = network.result, network.rates
         run.count("block", computed=1)
         lap("block")
-        quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])
-        poses_initial = result.poses_initial
-        station_times = np.array([s.t_s for s in stations])
-        correction = DriftCorrection.from_stations(station_times[quasi], poses_initial[quasi], result.poses[quasi],
-                                                   trajectory, jumps)
-        corrected_trajectory = correction.apply_to_trajectory(trajectory)
+        # One correction per run, from the run's own stations (each run has its own drift).
+        corrections = [run_correction(stations, result, k, trajectories[k], jumps[k]) for k in range(len(runs))]
+        corrected_trajectories = [c.apply_to_trajectory(t) for c, t in zip(corrections, trajectories, strict=True)]
+        names = [run_output_names(k, len(runs)) for k in range(len(runs))]
         # The large outputs are keyed by what they are made of; one still in the folder is kept.
         T_obj_cloud = None if references is None else references.T_ref_traj
-        cloud_key = run.key("output", "corrected.laz", inputs.cloud, config.input.chunk_points, T_obj_cloud,
-                            *dataclass_parts(correction))
-        sequence_key = run.key("output", "sequence.e57", slices.key, result.poses[np.arange(len(slices))])
-        current = {name for name, key in (("corrected.laz", cloud_key), ("sequence.e57", sequence_key))
-                   if run.output_is_current(name, key)}
-        remove_outputs(out, tuple(name for name in OUTPUT_FILES if name not in current))
-        write_trajectory_geoslam(out / "trajectory_corrected.txt", corrected_trajectory, overwrite=True)
-        if "corrected.laz" not in current:
-            write_corrected_las(inputs.cloud, out / "corrected.laz", correction, config.input.chunk_points,
-                                overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud)
-            run.record_output("corrected.laz", cloud_key)
-        run.count("corrected cloud", reused=int("corrected.laz" in current),
-                  computed=int("corrected.laz" not in current))
+        keys = {cloud_name: run.key("output", cloud_name, r.cloud, config.input.chunk_points, T_obj_cloud,
+                                    *dataclass_parts(correction))
+                for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True)}
+        n_scans = sum(len(slices) for slices in sliced)
+        keys["sequence.e57"] = run.key("output", "sequence.e57", *(slices.key for slices in sliced),
+                                       result.poses[np.arange(n_scans)])
+        current = {name for name, key in keys.items() if run.output_is_current(name, key)}
+        remove_outputs(out, tuple(name for name in outputs if name not in current))
+        for (_, trajectory_name), corrected_trajectory in zip(names, corrected_trajectories, strict=True):
+            write_trajectory_geoslam(out / trajectory_name, corrected_trajectory, overwrite=True)
+        for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True):
+            if cloud_name not in current:
+                write_corrected_las(r.cloud, out / cloud_name, correction, config.input.chunk_points,
+                                    overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud)
+                run.record_output(cloud_name, keys[cloud_name])
+            run.count("corrected cloud", reused=int(cloud_name in current), computed=int(cloud_name not in current))
         lap("corrected cloud")
         if "sequence.e57" not in current:
-            sequence = slices.sequence()
-            scans = _counted(_adjusted_scans(sequence, result.poses), progress, "write E57", len(sequence))
+            scans = _counted(adjusted_scans(sliced, result.poses), progress, "write E57", n_scans)
             write_e57_sequence(out / "sequence.e57", scans, overwrite=True)
-            run.record_output("sequence.e57", sequence_key)
+            run.record_output("sequence.e57", keys["sequence.e57"])
         run.count("sequence E57", reused=int("sequence.e57" in current), computed=int("sequence.e57" not in current))
         lap("sequence E57")
-        slicing_summary = slices.summary
 
-    shift, rot = correction.magnitude()
+    shift = np.concatenate([c.magnitude()[0] for c in corrections])
+    rot = np.concatenate([c.magnitude()[1] for c in corrections])
     config_toml = format_toml(config)
     report = build_report(
-        inputs={"trajectory": str(inputs.trajectory), "cloud": str(inputs.cloud), "n_points": n_points_input,
-                "n_trajectory_rows": len(trajectory), "duration_s": trajectory.duration_s,
-                "path_length_m": trajectory.path_length_m()},
+        inputs=inputs_report(runs, trajectories, sliced),
         config_toml=config_toml,
         stations=stations, planes=planes, links=links, n_candidate_pairs=n_candidates, result=result,
-        slicing={"n_scans": slicing_summary.n_scans, "n_points_in_scans": slicing_summary.n_points_in_scans,
-                 "n_points_outside_trajectory": slicing_summary.n_points_outside_trajectory,
-                 "skipped_windows": [dataclasses.asdict(w) for w in slicing_summary.skipped]},
+        slicing=slicing_report([slices.summary for slices in sliced]),
         correction_mm=shift * 1000.0, correction_mdeg=np.degrees(rot) * 1000.0,
         datum=network.datum, alpha=config.block.alpha, timings_s=timings, drift_rates=rates,
-        trajectory_plot=_trajectory_plot(trajectory, corrected_trajectory),
+        trajectory_plot=trajectory_plot(trajectories, corrected_trajectories),
     )
     report["inputs"]["static"] = None if inputs.static is None else str(inputs.static)
     report["inputs"]["reference"] = None if inputs.reference is None else str(inputs.reference)
     report["trajectory_jumps"] = [
         {"t": j.t_s, "row": j.index, "step_m": j.step_m, "step_deg": j.step_deg,
-         "translation_m": j.translation_m.tolist(), "significance": j.significance} for j in jumps]
+         "translation_m": j.translation_m.tolist(), "significance": j.significance,
+         **({"run": k + 1} if len(runs) > 1 else {})} for k, run_jumps in enumerate(jumps) for j in run_jumps]
     if references is not None:
         report["reference"] = {"accuracy_m": references.accuracy_m, "n_ties": len(network.ties),
                                "planes": as_built(network.ties, result.poses, planes, references)}
@@ -552,6 +598,7 @@ def process(
         n_rejected=len(report["adjustment"]["rejected_observations"]),
         timings_s=timings,
         stage_cache=run.summary(),
+        n_runs=len(runs),
     )
 
 

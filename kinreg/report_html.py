@@ -683,9 +683,14 @@ def _table(rows: Sequence[tuple[str, ...]], header: Sequence[str] = (), numeric_
 def _section_inputs(report: dict[str, Any]) -> str:
     inputs = _get(report, "inputs", default={})
     slicing = _get(report, "slicing", default={})
+    runs = [r for r in _get(report, "inputs", "runs", default=[]) if isinstance(r, dict)]
+    if len(runs) > 1:  # several runs in one project: the files of each, then the totals
+        files = [(f"run {k} {key}", str(r.get(key) or DASH)) for k, r in enumerate(runs, 1)
+                 for key in ("trajectory", "cloud")]
+    else:
+        files = [("trajectory", str(inputs.get("trajectory") or DASH)), ("cloud", str(inputs.get("cloud") or DASH))]
     rows = [
-        ("trajectory", str(inputs.get("trajectory") or DASH)),
-        ("cloud", str(inputs.get("cloud") or DASH)),
+        *files,
         ("points", _count(inputs.get("n_points"))),
         ("trajectory rows", _count(inputs.get("n_trajectory_rows"))),
         ("duration", _duration(inputs.get("duration_s"))),
@@ -851,6 +856,9 @@ def render_html(report: dict[str, Any]) -> str:
     report = _plain(report) if isinstance(report, dict) else {}
     inputs = _get(report, "inputs", default={})
     name = str(inputs.get("cloud") or inputs.get("trajectory") or "")
+    runs = [r for r in _get(report, "inputs", "runs", default=[]) if isinstance(r, dict)]
+    if not name and len(runs) > 1:
+        name = f"{runs[0].get('cloud') or runs[0].get('trajectory') or ''} and {len(runs) - 1} more run(s)"
     version = report.get("kinreg_version", DASH)
     config = report.get("config_toml")
     parts = [

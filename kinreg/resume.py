@@ -26,6 +26,11 @@ Every ``kinreg process`` run keeps its stage results in ``<out>/.kinreg-cache/``
   correction; the slice key and the adjusted poses). One that is still current is kept, not
   written again; every other output is always rewritten.
 
+Several runs in one project (:mod:`kinreg.runs`) need no other keys: slicing and planes are keyed
+by each run's own files, the corrected cloud of each run by its own name and correction, and
+``sequence.e57`` by the slicing keys of all runs. Each run keeps its own spill record
+(:func:`spill_record_name`), so that the spills of all runs live side by side.
+
 Every key also covers the cache schema and kinreg version. At the end of a finished run the
 entries it did not use are deleted, so the cache holds one run's results (kilobytes per scan).
 """
@@ -74,7 +79,8 @@ from kinreg.types import Plane, Trajectory
 log = logging.getLogger(__name__)
 
 CACHE_FOLDER = ".kinreg-cache"
-# Where the spill of the run is while it lives (a JSON file in the cache folder).
+# Where the spill of the run is while it lives (a JSON file in the cache folder); with several
+# runs, each has its own: spill.json for the first, spill_r2.json for the second, ...
 _SPILL_RECORD = "spill.json"
 _SPILL_FILE = re.compile(r"unit_\d+\.bin")
 
@@ -179,9 +185,11 @@ def open_run_cache(out_dir: Path, output_files: tuple[str, ...], overwrite: bool
                           "leave out --resume", out_dir)
     cache = StageCache(out_dir / CACHE_FOLDER)
     if overwrite and has_cache:
-        _remove_recorded_spill(cache.folder)
+        for record in sorted(cache.folder.glob("spill*.json")):
+            _remove_recorded_spill(cache.folder, record.name)
         try:
-            shutil.rmtree(cache.folder)
+            if cache.folder.exists():  # removing the last record removes an otherwise empty cache folder
+                shutil.rmtree(cache.folder)
         except OSError as e:
             raise OutputError(f"cannot delete the stage cache: {e.strerror or e}", cache.folder) from None
     if resume and has_cache:
@@ -226,17 +234,22 @@ def _alive(pid: int) -> bool:
 # --------------------------------------------------------------------------- slicing and its spill
 
 
-def _read_spill_record(cache_folder: Path) -> tuple[str, Path] | None:
+def spill_record_name(run_index: int) -> str:
+    """The name of the spill record of the run ``run_index`` (0-based) in the cache folder."""
+    return _SPILL_RECORD if run_index == 0 else f"spill_r{run_index + 1}.json"
+
+
+def _read_spill_record(cache_folder: Path, name: str = _SPILL_RECORD) -> tuple[str, Path] | None:
     try:
-        data = json.loads((cache_folder / _SPILL_RECORD).read_text(encoding="utf-8"))
+        data = json.loads((cache_folder / name).read_text(encoding="utf-8"))
         return str(data["key"]), Path(data["folder"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
 
-def _write_spill_record(cache_folder: Path, key: str, folder: Path) -> None:
+def _write_spill_record(cache_folder: Path, key: str, folder: Path, name: str = _SPILL_RECORD) -> None:
     cache_folder.mkdir(parents=True, exist_ok=True)
-    path = cache_folder / _SPILL_RECORD
+    path = cache_folder / name
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps({"key": key, "folder": str(folder.resolve())}) + "\n", encoding="utf-8")
     os.replace(tmp, path)
@@ -253,11 +266,11 @@ def _remove_spill(folder: Path) -> None:
         log.warning("%s: not deleted: it holds files that are not kinreg's spill", folder)
 
 
-def _remove_recorded_spill(cache_folder: Path) -> None:
-    record = _read_spill_record(cache_folder)
+def _remove_recorded_spill(cache_folder: Path, name: str = _SPILL_RECORD) -> None:
+    record = _read_spill_record(cache_folder, name)
     if record is not None:
         _remove_spill(record[1])
-    (cache_folder / _SPILL_RECORD).unlink(missing_ok=True)
+    (cache_folder / name).unlink(missing_ok=True)
     with contextlib.suppress(OSError):
         cache_folder.rmdir()  # a run that stored nothing (it failed in slicing) leaves no cache
 
@@ -268,9 +281,10 @@ class CachedSlices:
 
     def __init__(self, run: RunCache, key: str, cloud_path: Path, index: Mapping[str, np.ndarray],
                  n_points_input: int, sequence: QuasiStaticSequence | None,
-                 slice_again: Callable[[], QuasiStaticSequence]) -> None:
+                 slice_again: Callable[[], QuasiStaticSequence], record: str = _SPILL_RECORD) -> None:
         self.run = run
         self.key = key
+        self.record = record  # the name of this run's spill record in the cache folder
         self.cloud_path = cloud_path
         self.index = index
         self.n_points_input = n_points_input
@@ -286,7 +300,7 @@ class CachedSlices:
         the cloud sliced again (one pass; the result must equal the cached index)."""
         if self._sequence is not None:
             return self._sequence
-        record = _read_spill_record(self.run.cache.folder)
+        record = _read_spill_record(self.run.cache.folder, self.record)
         if record is not None and record[0] == self.key:
             sequence = QuasiStaticSequence.reopen(record[1], self.index)
             if sequence is not None:
@@ -302,7 +316,7 @@ class CachedSlices:
 
     def close(self) -> None:
         """Delete the spill and its record."""
-        _remove_recorded_spill(self.run.cache.folder)
+        _remove_recorded_spill(self.run.cache.folder, self.record)
 
 
 def _same_index(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> bool:
@@ -311,25 +325,28 @@ def _same_index(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> boo
 
 @contextmanager
 def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajectory: Trajectory,
-               config: KinregConfig, progress: Progress) -> Iterator[CachedSlices]:
+               config: KinregConfig, progress: Progress, run_index: int = 0) -> Iterator[CachedSlices]:
     """The ``slice`` stage through the cache (see the module docstring). On leaving, also by an
     exception or Ctrl-C, the spill is deleted; only a killed process (SIGKILL, SIGTERM, power cut)
-    leaves it, and then ``--resume`` (or ``--overwrite``) of the same folder finds it."""
+    leaves it, and then ``--resume`` (or ``--overwrite``) of the same folder finds it. Each of
+    several runs (``run_index``, 0-based) keeps its own spill record, so that their spills live
+    side by side; the cache entries need nothing more: they are keyed by the run's files."""
+    name = spill_record_name(run_index)
     input_part = {"trajectory_format": config.input.trajectory_format,
                   "trajectory_columns": config.input.trajectory_columns}
     slicing_part = dataclasses.replace(config.slicing, temp_dir="")  # where the spill goes is no result
     key = run.key("slice", trajectory_path, cloud_path, slicing_part, input_part)
     entry = run.load("slice", key)
-    record = _read_spill_record(run.cache.folder)
+    record = _read_spill_record(run.cache.folder, name)
     if record is not None and (entry is None or record[0] != key):
-        _remove_recorded_spill(run.cache.folder)  # an unfinished spill, or one of other inputs
+        _remove_recorded_spill(run.cache.folder, name)  # an unfinished spill, or one of other inputs
 
     def slice_now() -> QuasiStaticSequence:
-        _remove_recorded_spill(run.cache.folder)
+        _remove_recorded_spill(run.cache.folder, name)
         folder = make_spill_folder(config.slicing)
         try:
             try:
-                _write_spill_record(run.cache.folder, key, folder)
+                _write_spill_record(run.cache.folder, key, folder, name)
             except OSError as e:
                 raise OutputError(f"cannot write the stage cache: {e.strerror or e}", run.cache.folder) from None
             with open_cloud(cloud_path) as cloud:
@@ -337,7 +354,7 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
                                               progress=progress, folder=folder)
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
-            _remove_recorded_spill(run.cache.folder)
+            _remove_recorded_spill(run.cache.folder, name)
             raise
         run.count("slice", computed=1)
         return sequence
@@ -353,7 +370,7 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
         index, n_points_input = entry.arrays, int(entry.meta["n_points_input"])
         run.count("slice", reused=1)
         log.info("slice: %d scans re-used from the stage cache", len(index["scan_id"]))
-    slices = CachedSlices(run, key, cloud_path, index, n_points_input, sequence, slice_now)
+    slices = CachedSlices(run, key, cloud_path, index, n_points_input, sequence, slice_now, name)
     try:
         yield slices
     finally:

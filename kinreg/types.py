@@ -158,7 +158,9 @@ class Plane:
 
     ``centroid_xyz`` is the mean of the inliers, ``hull_xyz`` (K, 3) the convex hull of the
     inliers in the plane (scan frame), ``area_m2`` its area, ``rms_m`` the RMS of the
-    orthogonal residuals of the ``n_points`` full-resolution inliers.
+    orthogonal residuals of the ``n_points`` full-resolution inliers. ``t_offset_s`` is when the
+    plane was seen, relative to the scan's centre time: drift inside the window moves the plane by
+    the drift over that time (see :func:`kinreg.network.with_window_deformation`).
     """
 
     scan_id: int
@@ -172,6 +174,7 @@ class Plane:
     area_m2: float
     n_points: int
     rms_m: float
+    t_offset_s: float = 0.0  # mean time of the inliers minus the scan's centre time (0: static scan)
 
     def cov_nd(self) -> FloatArray:
         """The (rank-3) 4x4 covariance of (nx, ny, nz, d)."""

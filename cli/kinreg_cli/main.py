@@ -137,8 +137,10 @@ def link_command(
 
 @app.command("process")
 def process_command(
-    trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],
-    cloud: Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")],
+    trajectory: Annotated[list[Path], typer.Option(
+        "--trajectory", "-t", help="Trajectory file; repeat it (with --cloud) for several runs in one project.")],
+    cloud: Annotated[list[Path], typer.Option(
+        "--cloud", "-c", help="Point cloud (LAS/LAZ) with point times; one per --trajectory, paired in order.")],
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
     static: Annotated[Path | None, typer.Option("--static", help="Registered static scans (E57 with poses).")] = None,
     reference: Annotated[Path | None, typer.Option("--reference", help="Reference planes (TOML).")] = None,
@@ -158,11 +160,14 @@ def process_command(
     from kinreg.pipeline import ProcessInputs, process
 
     cfg = _config(config, {"slicing.window_s": window_s})
-    summary = process(ProcessInputs(trajectory, cloud, static, reference), out_dir, cfg, overwrite=overwrite,
-                      progress=RichProgress(console), workers=workers, scheduler=scheduler, resume=resume)
+    inputs = ProcessInputs.from_runs(trajectory, cloud, static, reference)
+    summary = process(inputs, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console), workers=workers,
+                      scheduler=scheduler, resume=resume)
     table = Table(title=f"kinreg results in {out_dir}", show_header=False, title_justify="left")
     table.add_column("", style="bold")
     table.add_column("")
+    if summary.n_runs > 1:
+        table.add_row("runs", f"{summary.n_runs}")
     table.add_row("stations", f"{summary.n_stations}")
     table.add_row("links", f"{summary.n_links}")
     verdict = "passed" if summary.global_test_passed else "FAILED (sigmas scaled by sigma0)"
