@@ -164,3 +164,31 @@ def test_repeated_and_looped_matches_do_not_break_the_adjustment():
     assert link.status is LinkStatus.OK
     e = error_twist(link.T_i_j, T_true)
     assert e @ np.linalg.solve(link.cov_xi, e) < stats.chi2.ppf(0.999, 6)
+
+
+def test_window_deformation_adds_the_drift_over_each_planes_time_offset():
+    import dataclasses
+
+    from kinreg.network import DriftRates, with_window_deformation
+
+    rng = np.random.default_rng(3)
+    T = pose([0.0, 0.0, 0.3], [1.0, 2.0, 0.0])
+    planes = scan_planes(T, 0, rng)
+    seen = [dataclasses.replace(p, t_offset_s=t) for p, t in zip(planes, (0.0, 2.0, -1.0, 3.0, 0.5, 1.5), strict=False)]
+    rates = DriftRates(np.array([1e-3, 2e-3, 0.0]), np.zeros(3), 0.0, 0.0)
+    deformed = with_window_deformation(seen, T, rates)
+    for before, after in zip(seen, deformed, strict=True):
+        n_obj = T.rotation_matrix @ before.normal
+        expected = np.sum((n_obj * rates.pos_m_per_s) ** 2) * before.t_offset_s**2
+        assert after.cov_uvd[2, 2] - before.cov_uvd[2, 2] == pytest.approx(expected, rel=1e-9, abs=1e-18)
+        assert np.allclose(after.cov_uvd[:2, :2], before.cov_uvd[:2, :2])  # no rotation drift given
+    assert deformed[0] is seen[0]  # seen at the centre time: unchanged
+    turning = DriftRates(np.zeros(3), np.array([0.0, 0.0, 1e-4]), 0.0, 0.0)
+    tilted = with_window_deformation(seen, T, turning)
+    for before, after in zip(seen, tilted, strict=True):
+        n_obj = T.rotation_matrix @ before.normal
+        if abs(n_obj[2]) > 0.99:  # a floor or ceiling does not tilt when the scanner turns about z
+            assert np.allclose(after.cov_uvd, before.cov_uvd)
+        elif before.t_offset_s != 0.0:  # a wall does, by the turn over its time offset
+            total = np.trace(after.cov_uvd[:2, :2] - before.cov_uvd[:2, :2])
+            assert total == pytest.approx((1e-4 * before.t_offset_s) ** 2, rel=1e-6)
