@@ -422,9 +422,9 @@ def take_out_jumps(
     for n, k in enumerate(quasi):
         s = stations[k]
         stations[k] = dataclasses.replace(s, T_obj_scan=removal[n].compose(s.T_obj_scan))
-        if any(s.t_start_s < j.t_s and j.t_before_s < s.t_end_s for j in jumps):
-            log.warning("scan %s contains the trajectory jump at %.2f s: not linked by planes", s.name,
-                        next(j.t_s for j in jumps if s.t_start_s < j.t_s and j.t_before_s < s.t_end_s))
+        inside = [j.t_s for j in jumps if s.t_start_s < j.t_s and j.t_before_s < s.t_end_s]
+        if inside:
+            log.warning("scan %s contains the trajectory jump at %.2f s: not linked by planes", s.name, inside[0])
             planes[k] = ()
     for j in jumps:
         log.warning("the trajectory jumps by %.3f m and %.2f deg at %.3f s (row %d): taken out "
