@@ -35,31 +35,32 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 JUMP_M = 0.5
 
 
+def errors_after_rigid_fit(xyz: np.ndarray, truth: np.ndarray) -> dict:
+    """RMS and max [mm] of the position errors after a rigid fit onto the truth."""
+    from kinreg.report import rigid_fit
+
+    R, t = rigid_fit(xyz, truth)
+    err = np.linalg.norm(xyz @ R.T + t - truth, axis=1) * 1000.0
+    return {"rms_mm": float(np.sqrt(np.mean(err**2))), "max_mm": float(err.max())}
+
+
 def station_errors(out: Path, truth_path: Path) -> dict:
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.report import rigid_fit
 
     with open(out / "stations.csv") as f:
         rows = [r for r in csv.DictReader(f) if r["t"]]
     t = np.array([float(r["t"]) for r in rows])
     adj = np.array([[float(r[k]) for k in "xyz"] for r in rows])
-    truth = read_trajectory(truth_path).pose_at(t).t_xyz
-    R, tt = rigid_fit(adj, truth)
-    err = np.linalg.norm(adj @ R.T + tt - truth, axis=1) * 1000.0
-    return {"rms_mm": float(np.sqrt(np.mean(err**2))), "max_mm": float(err.max())}
+    return errors_after_rigid_fit(adj, read_trajectory(truth_path).pose_at(t).t_xyz)
 
 
 def trajectory_errors(out: Path, truth_path: Path) -> dict:
     """Corrected trajectory (every row) against the truth after a rigid fit: the jumps' rows too."""
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.report import rigid_fit
 
     corrected = read_trajectory(out / "trajectory_corrected.txt")
-    xyz = corrected.poses.t_xyz
     truth = read_trajectory(truth_path).pose_at(corrected.stamps_s).t_xyz
-    R, tt = rigid_fit(xyz, truth)
-    err = np.linalg.norm(xyz @ R.T + tt - truth, axis=1) * 1000.0
-    return {"rms_mm": float(np.sqrt(np.mean(err**2))), "max_mm": float(err.max())}
+    return errors_after_rigid_fit(corrected.poses.t_xyz, truth)
 
 
 def with_jumps(data: Path, folder: Path, jump_times: tuple[float, float]) -> tuple[Path, Path]:

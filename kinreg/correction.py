@@ -25,11 +25,11 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 
+from kinreg.discontinuity import TrajectoryJump, jump_arrays, jump_removal
 from kinreg.errors import CloudError
 from kinreg.geometry import (
     FloatArray,
@@ -43,9 +43,6 @@ from kinreg.geometry import (
 from kinreg.io.atomic import atomic_path
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import Trajectory
-
-if TYPE_CHECKING:
-    from kinreg.discontinuity import TrajectoryJump
 
 
 @dataclass(frozen=True, eq=False)
@@ -120,48 +117,6 @@ class DriftCorrection:
     def magnitude(self) -> tuple[FloatArray, FloatArray]:
         """Per station: shift [m] and rotation [rad] of the correction."""
         return np.linalg.norm(self.delta_m, axis=1), np.linalg.norm(self.rotvec, axis=1)
-
-
-def jump_removal(jump_times_s: FloatArray | None, jump_steps: Pose | None, stamps_s: FloatArray) -> Pose:
-    """Per time (n,): ``S_1^-1 ... S_k^-1`` for the jumps before it (identity before the first).
-    ``jump_times_s`` (m, 2) are the jumps' sample intervals (before, at) in time order, ``jump_steps``
-    (m,) their steps. A time inside an interval gets the fraction of the step that interpolating
-    the trajectory across it gives."""
-    t = np.asarray(stamps_s, dtype=np.float64)
-    removal = _identity(len(t))
-    if jump_steps is None or jump_times_s is None:
-        return removal
-    for k in range(len(jump_steps)):
-        before, at = jump_times_s[k]
-        step = jump_steps[k]
-        share = np.clip((t - before) / max(at - before, 1e-12), 0.0, 1.0)
-        full = share >= 1.0
-        if full.any():
-            removal = _replace_rows(removal, full, removal[full].compose(step.inverse()))
-        inside = (share > 0.0) & ~full
-        if inside.any():
-            partial = Pose.exp(share[inside, None] * step.log()[None, :])
-            removal = _replace_rows(removal, inside, removal[inside].compose(partial.inverse()))
-    return removal
-
-
-def jump_arrays(jumps: Sequence[TrajectoryJump]) -> tuple[FloatArray | None, Pose | None]:
-    """The jumps in time order as (sample intervals (m, 2), steps (m,)); ``(None, None)`` without."""
-    ordered = sorted(jumps, key=lambda j: j.t_s)
-    if not ordered:
-        return None, None
-    return (np.array([(j.t_before_s, j.t_s) for j in ordered], dtype=np.float64),
-            Pose.stack([j.step for j in ordered]))
-
-
-def _identity(n: int) -> Pose:
-    return Pose(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), np.zeros((n, 3)))
-
-
-def _replace_rows(poses: Pose, rows: np.ndarray, new: Pose) -> Pose:
-    quat, t_xyz = poses.quat_wxyz.copy(), poses.t_xyz.copy()
-    quat[rows], t_xyz[rows] = new.quat_wxyz, new.t_xyz
-    return Pose(quat, t_xyz)
 
 
 def write_corrected_las(

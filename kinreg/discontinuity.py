@@ -242,24 +242,53 @@ def remove_jumps(trajectory: Trajectory, jumps: Sequence[TrajectoryJump]) -> Tra
     """
     if not jumps:
         return trajectory
-    stamps = trajectory.stamps_s
-    quat = trajectory.poses.quat_wxyz.copy()
-    t_xyz = trajectory.poses.t_xyz.copy()
-    correction = Pose.identity()
+    fixed = jump_removal(*jump_arrays(jumps), trajectory.stamps_s).compose(trajectory.poses)
+    return replace(trajectory, poses=Pose(make_quat_continuous(fixed.quat_wxyz), fixed.t_xyz))
+
+
+def jump_removal(jump_times_s: FloatArray | None, jump_steps: Pose | None, stamps_s: FloatArray) -> Pose:
+    """Per time (n,): ``S_1^-1 ... S_k^-1`` for the jumps before it (identity before the first).
+    ``jump_times_s`` (m, 2) are the jumps' sample intervals (before, at) in time order, ``jump_steps``
+    (m,) their steps. A time inside an interval gets the fraction of the step that interpolating
+    the trajectory across it gives."""
+    t = np.asarray(stamps_s, dtype=np.float64)
+    removal = _identity(len(t))
+    if jump_steps is None or jump_times_s is None:
+        return removal
+    for k in range(len(jump_steps)):
+        before, at = jump_times_s[k]
+        step = jump_steps[k]
+        share = np.clip((t - before) / max(at - before, 1e-12), 0.0, 1.0)
+        full = share >= 1.0
+        if full.any():
+            removal = _replace_rows(removal, full, removal[full].compose(step.inverse()))
+        inside = (share > 0.0) & ~full
+        if inside.any():
+            partial = Pose.exp(share[inside, None] * step.log()[None, :])
+            removal = _replace_rows(removal, inside, removal[inside].compose(partial.inverse()))
+    return removal
+
+
+def jump_arrays(jumps: Sequence[TrajectoryJump]) -> tuple[FloatArray | None, Pose | None]:
+    """The jumps in time order as (sample intervals (m, 2), steps (m,)); ``(None, None)`` without."""
     ordered = sorted(jumps, key=lambda j: j.t_s)
-    starts = [int(np.searchsorted(stamps, j.t_s, side="left")) for j in ordered]
-    for k, (jump, start) in enumerate(zip(ordered, starts, strict=True)):
-        correction = correction.compose(jump.step.inverse())
-        end = starts[k + 1] if k + 1 < len(ordered) else len(stamps)
-        if end <= start:
-            continue
-        fixed = correction.compose(Pose(quat[start:end], t_xyz[start:end]))
-        quat[start:end] = fixed.quat_wxyz
-        t_xyz[start:end] = fixed.t_xyz
-    return replace(trajectory, poses=Pose(make_quat_continuous(quat), t_xyz))
+    if not ordered:
+        return None, None
+    return (np.array([(j.t_before_s, j.t_s) for j in ordered], dtype=np.float64),
+            Pose.stack([j.step for j in ordered]))
 
 
 # --------------------------------------------------------------------------- internals
+
+
+def _identity(n: int) -> Pose:
+    return Pose(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)), np.zeros((n, 3)))
+
+
+def _replace_rows(poses: Pose, rows: np.ndarray, new: Pose) -> Pose:
+    quat, t_xyz = poses.quat_wxyz.copy(), poses.t_xyz.copy()
+    quat[rows], t_xyz[rows] = new.quat_wxyz, new.t_xyz
+    return Pose(quat, t_xyz)
 
 
 def _check_config(cfg: DiscontinuityConfig) -> None:

@@ -86,11 +86,10 @@ def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
 def link_pair(
     i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    rates: DriftRates | None = None,
 ) -> Link | None:
     """Match and adjust one candidate pair; ``None`` where too few planes match. The planes'
-    covariances get the drift inside their windows (:func:`with_window_deformation`) at ``rates``
-    (the drift model's prior rates without them)."""
+    covariances are expected to carry the drift inside their windows already
+    (:func:`with_window_deformation`, as :func:`link_stations` passes them)."""
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
     matches = match_planes(planes_i, planes_j, T_prior, matching)
     sigma = None
@@ -114,9 +113,6 @@ def link_pair(
         sigma = np.array([static.prior_sigma_m] * 3 + [np.radians(static.prior_sigma_deg)] * 3)
     elif si.run != sj.run:
         sigma = np.array([pairwise.cross_run_prior_sigma_m] * 3 + [np.radians(pairwise.cross_run_prior_sigma_deg)] * 3)
-    rates = rates or DriftRates.from_config(drift)
-    planes_i = with_window_deformation(planes_i, si.T_obj_scan, rates)
-    planes_j = with_window_deformation(planes_j, sj.T_obj_scan, rates)
     return adjust_pair(i, j, planes_i, planes_j, T_prior, _dt(si, sj), matches, drift, pairwise, sigma_prior=sigma)
 
 
@@ -151,7 +147,10 @@ def link_stations(
     """
     progress = progress or NullProgress()
     pairs = station_pairs(stations, matching, static)
-    configs = (matching, drift, pairwise, static, rates)
+    # Once per station, not once per pair: matching does not look at the covariances.
+    rates = rates or DriftRates.from_config(drift)
+    planes = [with_window_deformation(p, s.T_obj_scan, rates) for s, p in zip(stations, planes, strict=True)]
+    configs = (matching, drift, pairwise, static)
     batches = [pairs[k:k + _PAIRS_PER_TASK] for k in range(0, len(pairs), _PAIRS_PER_TASK)]
     progress.start("link", total=len(batches), unit="batches")
 

@@ -24,8 +24,8 @@ from kinreg.config import (
     StaticDatum,
     format_toml,
 )
-from kinreg.correction import jump_arrays, jump_removal, write_corrected_las
-from kinreg.discontinuity import TrajectoryJump, detect_jumps
+from kinreg.correction import write_corrected_las
+from kinreg.discontinuity import TrajectoryJump, detect_jumps, jump_arrays, jump_removal
 from kinreg.errors import ConfigError, EstimationError
 from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
 from kinreg.geometry import Pose

@@ -57,6 +57,7 @@ from kinreg.cache import (
     StageCache,
     planes_from_arrays,
     planes_to_arrays,
+    process_alive,
     stations_from_arrays,
     stations_to_arrays,
 )
@@ -207,7 +208,7 @@ def remove_stale_outputs(out_dir: Path, output_files: tuple[str, ...]) -> None:
     pattern = re.compile(r"\.(.+)\.tmp-(\d+)(\.[A-Za-z0-9]+)?")
     for path in out_dir.iterdir():
         m = pattern.fullmatch(path.name)
-        if m and m.group(1) in stems and path.is_file() and not _alive(int(m.group(2))):
+        if m and m.group(1) in stems and path.is_file() and not process_alive(int(m.group(2))):
             path.unlink(missing_ok=True)
 
 
@@ -219,16 +220,6 @@ def remove_outputs(out_dir: Path, names: tuple[str, ...]) -> None:
             (out_dir / name).unlink(missing_ok=True)
         except OSError as e:
             raise OutputError(f"cannot replace: {e.strerror or e}", out_dir / name) from None
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 # --------------------------------------------------------------------------- slicing and its spill
