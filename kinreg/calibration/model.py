@@ -209,8 +209,24 @@ class PlaneResidualStats:
     normalized_rms: float  # RMS of residual / its a-priori sigma (1 if the model fits)
 
 
+class CovarianceFigures:
+    """Standard deviations and correlations of a result's 6x6 ``covariance`` (m, rad)."""
+
+    covariance: FloatArray
+
+    @property
+    def sigmas(self) -> FloatArray:
+        """Standard deviations ``(6,)`` (m, rad)."""
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def correlation(self) -> FloatArray:
+        s = self.sigmas
+        return self.covariance / np.outer(s, s)
+
+
 @dataclass(frozen=True, eq=False)
-class CalibrationResult:
+class CalibrationResult(CovarianceFigures):
     """Estimated calibration with its covariance ``(6, 6)`` (order :data:`PARAMETER_NAMES`,
     m and rad), sigma0 and the global test, per-plane residuals and per-point residuals
     ``residuals_m`` ``(N,)`` (``nan`` for points not used)."""
@@ -228,15 +244,6 @@ class CalibrationResult:
     converged: bool
     plane_corrections: FloatArray | None = None  # (k, 3): tilt u, tilt v (rad), offset (m)
 
-    @property
-    def sigmas(self) -> FloatArray:
-        """Standard deviations ``(6,)`` (m, rad)."""
-        return np.sqrt(np.diag(self.covariance))
-
-    @property
-    def correlation(self) -> FloatArray:
-        s = self.sigmas
-        return self.covariance / np.outer(s, s)
 
 
 # --------------------------------------------------------------------------- plane assignment

@@ -49,7 +49,7 @@ from kinreg.calibration.arrangement import (
     projected_variance,
     table2_arrangement,
 )
-from kinreg.calibration.model import PARAMETER_NAMES, ScannerSigmas, TrackerSigmas
+from kinreg.calibration.model import PARAMETER_NAMES, CovarianceFigures, ScannerSigmas, TrackerSigmas
 from kinreg.errors import ConfigError, EstimationError
 from kinreg.geometry import FloatArray, skew
 
@@ -89,7 +89,7 @@ class PlanningConfig:
 
 
 @dataclass(frozen=True, eq=False)
-class ArrangementQuality:
+class ArrangementQuality(CovarianceFigures):
     """Theoretical quality of one arrangement: ``covariance`` (6, 6) in m and rad (order
     ``tx ty tz omega phi kappa``), fitness values in millimetres, points per plane."""
 
@@ -99,14 +99,6 @@ class ArrangementQuality:
     f3_mm: float
     points_per_plane: dict[str, int]
 
-    @property
-    def sigmas(self) -> FloatArray:
-        return np.sqrt(np.diag(self.covariance))
-
-    @property
-    def correlation(self) -> FloatArray:
-        s = self.sigmas
-        return self.covariance / np.outer(s, s)
 
 
 def _point_normal_matrix(points_s: FloatArray, normals_s: FloatArray, scanner: ScannerSigmas
