@@ -136,14 +136,42 @@ def adjust_block(
     kinds = np.array([o.kind.value for o in observations])
     weights = {k.value: 1.0 for k in ObservationKind}
     rejected_order: list[int] = []
+    last_round: list[int] = []  # rejected in the previous round
+    protected: set[int] = set()  # taken back after a rejection left the network undetermined
+    variance_before = np.zeros(0)
     vce_rounds = 0
     start = poses_initial
     progress.start("block adjustment", total=None, unit="iterations")
     while True:
-        poses, iterations, factor, N, free_index = _gauss_newton(start, observations, active, fixed,
-                                                                   weights, config, progress)
-        tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed, free_index,
-                                                                  weights, factor, N, config)
+        try:
+            if last_round:
+                _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
+            poses, iterations, factor, N, free_index = _gauss_newton(start, observations, active, fixed,
+                                                                       weights, config, progress)
+            tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed,
+                                                                      free_index, weights, factor, N, config)
+        except EstimationError:
+            if not last_round:
+                raise
+            stations_grown = None  # singular or apart without the last round's rejections: all back
+        else:
+            variance = np.trace(Qxx_blocks[:, :3, :3], axis1=1, axis2=2)
+            grown = np.flatnonzero(variance > _MAX_VARIANCE_GROWTH * variance_before) if last_round else []
+            stations_grown = set(np.flatnonzero(np.isin(free_index, grown)).tolist()) if len(grown) else set()
+        if stations_grown is None or stations_grown:
+            # Together the last round's rejections left some direction of some stations resting on
+            # nothing (none alone was its only support): those touching such a station are taken
+            # back and kept; the others may be rejected again in the next round.
+            back = [k for k in last_round if {observations[k].i, observations[k].j} & (stations_grown or set())]
+            back = back or last_round
+            log.info("block: observations %s taken back (without them the network is undetermined)", back)
+            for k in back:
+                active[k] = True
+                rejected_order.remove(k)
+            protected.update(back)
+            last_round = []
+            continue
+        last_round = []
         if config.variance_components and vce_rounds < config.max_variance_rounds:
             new_weights = _variance_components(tests, weights)
             changed = any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
@@ -153,14 +181,16 @@ def adjust_block(
                 start = poses
                 continue
         budget = config.max_rejections - len(rejected_order)
-        worst = _worst_outliers(tests, config.alpha, budget) if config.data_snooping and budget > 0 else []
+        candidates = [t for t in tests if t.index not in protected]
+        worst = _worst_outliers(candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
         if worst:
             for t in worst:
                 log.info("block: rejecting observation %d (%s %d-%d, statistic %.1f)", t.index, t.kind.value,
                          t.i, t.j, t.statistic)
                 active[t.index] = False
                 rejected_order.append(t.index)
-            _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
+                last_round.append(t.index)
+            variance_before = variance
             start = poses  # warm start: the next round begins at the current solution
             continue
         break
@@ -284,6 +314,10 @@ def _test_observations(poses, observations, active, fixed, free_index, weights, 
     Q_zz = np.where(mask2, np.eye(6) / w[:, :, None] - VJV, np.eye(6) * (~mask2))
     dof = determined.sum(axis=1)
     r_k = np.sum(np.where(determined, 1.0 - w * np.diagonal(VJV, axis1=1, axis2=2), 0.0), axis=1)
+    # Redundancy per direction: eigenvalues of I - W^1/2 V^T J Qxx J^T V W^1/2 (determined part).
+    sw = np.where(determined, np.sqrt(w), 0.0)
+    R_dir = np.eye(6) * determined[:, :, None] - sw[:, :, None] * VJV * sw[:, None, :]
+    r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
     vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
     statistic = np.einsum("ki,kij,kj->k", z, np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True), z)
     # An uncontrolled observation (redundancy ~ 0) cannot be tested.
@@ -292,18 +326,27 @@ def _test_observations(poses, observations, active, fixed, free_index, weights, 
     tests = [
         ObservationTest(int(idx[k]), ObservationKind(kinds[k]), int(obs_i[k]), int(observations[idx[k]].j),
                         float(statistic[k]), int(dof[k]), float(r_k[k]), float(np.sqrt(statistic[k] / dof[k])),
-                        False, float(vtpv[k]), JQJ[k])
+                        False, float(vtpv[k]), min_redundancy=float(r_dir[k, 0]), cov_adjusted=JQJ[k])
         for k in np.flatnonzero(keep)
     ]
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag
 
 
+_MIN_DIRECTION_REDUNDANCY = 0.02
+# A rejection round after which some station's position variance grows by this factor is undone.
+_MAX_VARIANCE_GROWTH = 100.0
+
+
 def _worst_outliers(tests: list[ObservationTest], alpha: float, budget: int) -> list[ObservationTest]:
     """Observations to reject in one round: those above the critical value that are the worst
     among all such observations touching either of their stations (one per neighbourhood, so
-    that an outlier's effect on its neighbours does not reject them too)."""
+    that an outlier's effect on its neighbours does not reject them too). An observation that
+    alone determines some direction (its redundancy there below ``_MIN_DIRECTION_REDUNDANCY``) is
+    never rejected: without it the network would be undetermined in that direction (a stretch
+    whose planes leave it free, carried by the trajectory alone)."""
     critical = {dof: stats.chi2.ppf(1.0 - alpha, dof) for dof in {t.dof for t in tests}}
-    bad = [t for t in tests if np.isfinite(t.statistic) and t.redundancy > 0.05 and t.statistic > critical[t.dof]]
+    bad = [t for t in tests if np.isfinite(t.statistic) and t.redundancy > 0.05 and t.statistic > critical[t.dof]
+           and not t.min_redundancy < _MIN_DIRECTION_REDUNDANCY]
     bad.sort(key=lambda t: t.statistic / critical[t.dof], reverse=True)
     taken: set[int] = set()
     chosen = []

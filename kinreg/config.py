@@ -67,11 +67,12 @@ class PlanesConfig:
     patch_min_cell_points: int = 2  # grid cells with fewer inliers do not connect (stray points)
     # Floors added in quadrature to the least-squares sigmas: quasi-static scans have correlated
     # errors (drift inside the window, incidence-angle range bias, wall unevenness) that the
-    # point-count-driven LS covariance (~0.03 mm for 1e5 points) does not see. Halving them
-    # (0.25 mm / 0.1 mrad) centres the normalised errors of simulated runs on 1 but weights the
-    # planes so much that stations with weak plane geometry get worse (benchmarks/RESULTS.md).
-    min_sigma_d_m: float = 0.0005
-    min_sigma_angle_rad: float = 0.0002
+    # point-count-driven LS covariance (~0.03 mm for 1e5 points) does not see. The drift inside
+    # the window is added per plane on top (kinreg.network.with_window_deformation). Chosen with
+    # the normalised station errors of repeated simulated runs (benchmarks/RESULTS.md): 0.5 mm /
+    # 0.2 mrad gave 0.6-0.7 (too conservative), 0.25 mm / 0.1 mrad worse stations.
+    min_sigma_d_m: float = 0.00035
+    min_sigma_angle_rad: float = 0.00014
     seed: int = 0  # RANSAC seed: the same seed gives the same planes
 
 
@@ -84,12 +85,18 @@ class DriftConfig:
     quasi-static scan (drift inside its window, see ``kinreg.network.window_bias_sigmas``).
     Defaults describe a handheld SLAM unit of the GeoSLAM class (a few mm over a 6 s window,
     1-3 cm over 100 m); set them from your scanner's specification.
+
+    The rates are a prior: the block adjustment measures the drift (the change of its
+    corrections between stations) and adjusts again with the measured rates, faster or slower
+    than the prior, but never below ``measured_rate_floor`` times the prior (a direction no plane
+    fixes shows no drift in the corrections, which would otherwise read as none at all).
     """
 
     sigma_pos_floor_m: float = 0.001
     sigma_pos_m_per_s: float = 0.0003
     sigma_rot_floor_deg: float = 0.01
     sigma_rot_deg_per_s: float = 0.003
+    measured_rate_floor: float = 0.25
 
 
 @dataclasses.dataclass(frozen=True)

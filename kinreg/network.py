@@ -272,23 +272,29 @@ def with_window_deformation(planes: Sequence[Plane], T_obj_scan: Pose, rates: Dr
     return tuple(out)
 
 
-def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates) -> DriftRates:
-    """The drift velocity measured by the adjustment: the change of the correction (shift at the
-    station, rotation) between consecutive quasi-static stations over their time difference,
+def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates,
+                         floor_share: float = 1.0) -> DriftRates:
+    """The drift velocity measured by the adjustment: the error of the trajectory's relative motion
+    between consecutive quasi-static stations (the adjusted step against the initial one turned by
+    the first station's correction; the change of the correction's rotation) over their time difference,
     robust RMS (from the median) per object axis, less the adjustment's own noise in that change (the covariance of the
-    adjusted relative pose, from the block's trajectory-link tests). The prior rates are a floor:
-    the estimate only ever raises them.
+    adjusted relative pose, from the block's trajectory-link tests). The estimate is bounded below
+    by ``floor_share`` times the prior rates (1: it only ever raises them); with too few
+    stations to measure, the prior is returned.
 
     Smooth drift is invisible in residuals (consecutive trajectory links err alike), but the
-    corrections themselves show it wherever planes fix the stations.
+    corrections themselves show it wherever planes fix the stations; where no plane fixes a
+    direction, the corrections follow the trajectory and show no drift, hence the floor.
     """
     noise = {(t.i, t.j): t.cov_adjusted for t in result.tests
              if t.kind is ObservationKind.TRAJECTORY and t.cov_adjusted is not None and not t.rejected}
     seq = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
     if len(seq) < 3:
         return prior
-    shift = result.poses.t_xyz - result.poses_initial.t_xyz
-    rot = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz)
+    correction = result.poses.compose(result.poses_initial.inverse())  # C_k = T_adjusted T_initial^-1
+    rot = quat_to_rotvec(correction.quat_wxyz)
+    R_corr = correction.rotation_matrix
+    p_adj, p_init = result.poses.t_xyz, result.poses_initial.t_xyz
     pos_v, rot_v, pos_noise, rot_noise = [], [], [], []
     for a, b in itertools.pairwise(seq):
         if stations[a].run != stations[b].run:
@@ -298,17 +304,28 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
         R = result.poses.rotation_matrix[a]
         pos_noise.append(np.diag(R @ cov[:3, :3] @ R.T) / dt**2)
         rot_noise.append(np.diag(R @ cov[3:, 3:] @ R.T) / dt**2)
-        pos_v.append((shift[b] - shift[a]) / dt)
+        # The relative motion's error, not the change of the shifts: a rotation error already
+        # there (C_a) turns the whole step, which is no drift between the two stations.
+        pos_v.append(((p_adj[b] - p_adj[a]) - R_corr[a] @ (p_init[b] - p_init[a])) / dt)
         rot_v.append((rot[b] - rot[a]) / dt)
     if len(pos_v) < 2:
         return prior
-    # Median-based (1.4826 MAD about zero): a jump in the trajectory is one huge change, not drift.
-    pos_rate = np.sqrt(np.maximum((1.4826 * np.median(np.abs(pos_v), axis=0)) ** 2
-                                  - np.median(pos_noise, axis=0), 0.0))
-    rot_rate = np.sqrt(np.maximum((1.4826 * np.median(np.abs(rot_v), axis=0)) ** 2
-                                  - np.median(rot_noise, axis=0), 0.0))
-    return DriftRates(np.maximum(prior.pos_m_per_s, pos_rate), np.maximum(prior.rot_rad_per_s, rot_rate),
+    pos_rate = _rms_rate(np.array(pos_v), np.array(pos_noise))
+    rot_rate = _rms_rate(np.array(rot_v), np.array(rot_noise))
+    return DriftRates(np.maximum(floor_share * prior.pos_m_per_s, pos_rate),
+                      np.maximum(floor_share * prior.rot_rad_per_s, rot_rate),
                       prior.pos_floor_m, prior.rot_floor_rad, estimated=True)
+
+
+def _rms_rate(velocity: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """Per axis: the RMS drift velocity less the adjustment's noise in it, over changes within
+    five robust sigmas (1.4826 MAD about zero): a jump the detector missed is one huge change, not
+    drift. RMS rather than median: the drift speeds up and slows down along a run, and the links of
+    its fast stretches must not read as outliers."""
+    robust = 1.4826 * np.median(np.abs(velocity), axis=0)
+    usual = np.abs(velocity) <= 5.0 * np.maximum(robust, 1e-12)
+    mean_sq = np.sum(np.where(usual, velocity**2, 0.0), axis=0) / np.maximum(usual.sum(axis=0), 1)
+    return np.sqrt(np.maximum(mean_sq - np.median(noise, axis=0), 0.0))
 
 
 def with_window_bias(result: BlockResult, stations: Sequence[Station], rates: DriftRates) -> BlockResult:

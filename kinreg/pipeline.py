@@ -386,14 +386,16 @@ def adjust_network(
     prior_rates = DriftRates.from_config(config.drift)
     result = adjust_block(poses_initial, block_observations(stations, links, prior_rates) + datum_obs, fixed,
                           config.block, progress)
-    rates = estimate_drift_rates(stations, result, prior_rates)
+    rates = estimate_drift_rates(stations, result, prior_rates, config.drift.measured_rate_floor)
     if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
             rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
-        # Second pass: the planes of a scan are deformed by the drift inside its window, by the
-        # measured rates rather than the prior ones, so the pairs are linked again with those.
+        # The planes of a scan are deformed by the drift inside its window: faster than the prior,
+        # by more than their covariances say, so the pairs are linked again with the measured rates.
         log.info("drift faster than the prior: linking again with the measured rates")
         links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress,
                               static, executor, rates)
+    if rates.estimated:
+        # Second pass: the trajectory's links (and the scans' window bias) with the measured rates.
         result = adjust_block(poses_initial, block_observations(stations, links, rates) + datum_obs, fixed,
                               config.block, progress)
     return AdjustedNetwork(with_window_bias(result, stations, rates), rates, "; ".join(datum), tuple(ties),

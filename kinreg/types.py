@@ -279,6 +279,9 @@ class ObservationTest:
     normalised: float  # sqrt(statistic / dof)
     rejected: bool
     vtpv: float = float("nan")  # its weighted squared residual e^T P e (for variance components)
+    # the least redundancy of any one direction it determines (0: that direction rests on it alone,
+    # so rejecting it would leave the network undetermined there)
+    min_redundancy: float = float("nan")
     # covariance (6x6, twist of its relative pose in station i's frame) of the adjusted relative
     # pose it observes: how well the network itself determines what this observation measures
     cov_adjusted: FloatArray | None = field(default=None, repr=False, compare=False)

@@ -155,3 +155,68 @@ def test_no_datum_is_a_clear_error():
     _, approx, obs = network(rng, n=10)
     with pytest.raises(EstimationError, match="no datum"):
         adjust_block(approx, obs, np.zeros(10, dtype=bool), BlockConfig())
+
+
+@pytest.mark.parametrize("y_info_share", [0.0, 1e-9])
+def test_rejections_that_together_leave_a_direction_free_are_taken_back(y_info_share):
+    """Stations 2-3 get their y only through the trajectory links 1-2 and 3-4 (their planes leave
+    y free), both carrying a 5 cm error in y. Each alone is not their only support, so one round
+    of data snooping would reject both and leave 2-3 free in y (singular, or nearly so): the
+    round is taken back and the network stays determined."""
+    rng = np.random.default_rng(7)
+    n = 6
+    truth = Pose(np.tile([1.0, 0, 0, 0], (n, 1)), np.column_stack([2.0 * np.arange(n), np.zeros(n), np.zeros(n)]))
+    cov_t = np.diag(np.square([1e-3] * 3 + [1e-4] * 3))
+    plane_sigma = (5e-4,) * 3 + (5e-5,) * 3
+    obs = []
+    for i in range(n - 1):
+        o = observe(truth, i, i + 1, cov_t, ObservationKind.TRAJECTORY, rng)
+        if (i, i + 1) in ((1, 2), (3, 4)):
+            o = RelativeObservation(o.kind, o.i, o.j, o.Z.compose(Pose.exp(np.array([0, 0.05, 0, 0, 0, 0]))),
+                                    o.info, o.rank)
+        obs.append(o)
+    for i in range(n):
+        for j in range(i + 1, n):
+            if (i, j) in ((0, 1), (1, 4), (4, 5)):
+                obs.append(observe(truth, i, j, np.diag(np.square(plane_sigma)), ObservationKind.PLANES, rng))
+            else:
+                p = rank_deficient_obs(truth, i, j, plane_sigma, 1, rng)
+                info = p.info.copy()
+                info[1, 1] = y_info_share * info[0, 0]
+                obs.append(RelativeObservation(p.kind, i, j, p.Z, info, p.rank))
+    fixed = np.zeros(n, dtype=bool)
+    fixed[0] = True
+    result = adjust_block(truth, obs, fixed, BlockConfig())
+    sigma = np.sqrt(np.einsum("kii->ki", result.cov_position))
+    assert np.all(sigma[1:] < 0.05)  # determined everywhere (free in y: metres, or singular)
+    rejected = {(t.i, t.j) for t in result.tests if t.rejected}
+    assert not {(1, 2), (3, 4)} <= rejected
+
+
+def test_drift_rates_measure_the_relative_motion_not_a_turned_walk():
+    """A constant rotation error turns the whole walk: the correction's shift then grows along
+    the path, but the relative motion between stations has no drift. A true drift velocity of
+    0.2 mm/s along x is measured as such."""
+    from types import SimpleNamespace
+
+    from kinreg.network import DriftRates, Station, estimate_drift_rates
+    from kinreg.types import ScanKind
+
+    n = 40
+    t = 6.0 * np.arange(n)
+    walk = Pose(np.tile([1.0, 0, 0, 0], (n, 1)), np.column_stack([0.4 * t, 20 + 0 * t, 0 * t]))
+    stations = [Station(k, f"s{k}", ScanKind.QUASI_STATIC, t[k], t[k] - 3, t[k] + 3, walk[k], 1000)
+                for k in range(n)]
+    prior = DriftRates(np.full(3, 3e-4), np.full(3, 5e-5), 1e-3, 1e-4)
+    turned = Pose.exp(np.array([0, 0, 0, 0, 0, np.radians(0.3)])).compose(walk)  # about the origin, 20 m off
+    rates = estimate_drift_rates(stations, SimpleNamespace(poses=turned, poses_initial=walk, tests=()), prior,
+                                 floor_share=0.01)
+    assert np.all(rates.pos_m_per_s < 1e-5)  # 0.3 deg x 2.4 m a step would read 2 mm/s
+    drifted = Pose(walk.quat_wxyz, walk.t_xyz + np.column_stack([2e-4 * t, 0 * t, 0 * t]))
+    rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=()), prior,
+                                 floor_share=0.01)
+    assert rates.pos_m_per_s[0] == pytest.approx(2e-4, rel=1e-6)
+    assert rates.pos_m_per_s[1] < 1e-5
+    rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=()), prior,
+                                 floor_share=0.25)
+    assert rates.pos_m_per_s[1] == pytest.approx(0.25 * 3e-4)  # never below the share of the prior
