@@ -1,0 +1,40 @@
+"""Honesty of the reported station sigmas end to end (slow: three simulated runs).
+
+On repeated realisations of the sample scenario (other walk, drift and noise than the committed
+run), the normalised station errors (error in the datum / reported sigma, per axis), pooled over
+the runs, must have an RMS between 0.7 and 1.5. One run's stations share most of their error, so
+the figure is judged on the pool (``benchmarks/eval_accuracy.py --seeds`` does the same with
+more runs and the held-out scenario).
+"""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kinreg.config import KinregConfig
+from kinreg.io.trajectory import read_trajectory
+from kinreg.pipeline import ProcessInputs, process
+from kinreg.simulation import config_from_dict, simulate_run, write_run
+
+SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
+
+
+@pytest.mark.slow
+def test_pooled_normalised_station_errors_are_near_one(tmp_path):
+    base = config_from_dict(json.loads((SAMPLE / "run_meta.json").read_text())["config"])
+    z2 = []
+    for seed in (2, 3, 4):
+        data, out = tmp_path / f"data{seed}", tmp_path / f"out{seed}"
+        write_run(simulate_run(dataclasses.replace(base, seed=seed)), data)
+        process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz"), out, KinregConfig())
+        rows = np.genfromtxt(out / "stations.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+        truth = read_trajectory(data / "truth_trajectory.txt").pose_at(rows["t"].astype(float)).t_xyz
+        err = np.column_stack([rows["x"], rows["y"], rows["z"]]) - truth
+        sig = np.column_stack([rows["sx_mm"], rows["sy_mm"], rows["sz_mm"]]) / 1000.0
+        free = sig.max(axis=1) > 0
+        z2.append(np.mean((err[free] / sig[free]) ** 2))
+    pooled = float(np.sqrt(np.mean(z2)))
+    assert 0.7 <= pooled <= 1.5, f"pooled normalised error RMS {pooled:.2f} (per run {np.sqrt(z2).round(2)})"
