@@ -17,12 +17,15 @@ is complete only when it holds the ``.complete`` mark, written after the last po
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import shutil
 import tempfile
+from bisect import bisect_left, bisect_right
 from collections import OrderedDict
 from collections.abc import Iterator, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -33,7 +36,7 @@ from kinreg.cache import windows_from_arrays, windows_to_arrays
 from kinreg.config import SlicingConfig, WindowMode
 from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import FloatArray
-from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader
+from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, Trajectory
 
@@ -50,6 +53,13 @@ POINT_MODE_BIN_S = 0.25
 
 # Open spill files kept at once; a time-sorted cloud touches one or two per chunk.
 _MAX_OPEN_FILES = 64
+
+# Records are assembled in two reused buffers of up to this many points (50 MB each), from
+# blocks whose float64 temporaries (256 kB) stay in the per-core cache. Fresh arrays of whole
+# chunks cost more than the arithmetic: the kernel maps and zeroes every page of every new
+# large array.
+_STAGING_POINTS = 1 << 21
+_BLOCK_POINTS = 1 << 15
 
 SPILL_PREFIX = "kinreg-slices-"  # name prefix of every spill folder
 SPILL_COMPLETE = ".complete"  # written into a spill folder after its last point
@@ -123,18 +133,33 @@ def _group_point_bins(counts: np.ndarray, target: int) -> list[tuple[int, int]]:
 
 
 class _SpillWriter:
-    """Appends point records to one file per unit, keeping a bounded number of files open."""
+    """Appends point records to one file per unit, keeping a bounded number of files open.
+
+    The files are written by one background thread, in the order of :meth:`append`, so that the
+    kernel's copying into the page cache (the largest cost of slicing after decoding) overlaps
+    with decoding and assembling the next records; :meth:`append` hands back a future per write.
+    """
 
     def __init__(self, folder: Path, origins: FloatArray) -> None:
         self.folder = folder
         self.origins = origins  # (n_units, 3) object-frame origin of each unit's offsets
         self.counts = np.zeros(len(origins), dtype=np.int64)
-        self._open: OrderedDict[int, BinaryIO] = OrderedDict()
+        self._open: OrderedDict[int, BinaryIO] = OrderedDict()  # used by the writer thread only
+        self._writer: ThreadPoolExecutor | None = None
 
     def path(self, unit: int) -> Path:
         return self.folder / f"unit_{unit:06d}.bin"
 
-    def append(self, unit: int, records: np.ndarray) -> None:
+    def append(self, unit: int, records: np.ndarray) -> Future[None]:
+        """Queue ``records`` (contiguous) for appending to ``unit``'s file. They must stay
+        unchanged until the returned future is done; its ``result()`` raises a failed write's
+        :class:`OSError`."""
+        if self._writer is None:
+            self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinreg-spill")
+        self.counts[unit] += len(records)
+        return self._writer.submit(self._write, unit, records)
+
+    def _write(self, unit: int, records: np.ndarray) -> None:
         f = self._open.pop(unit, None)
         if f is None:
             if len(self._open) >= _MAX_OPEN_FILES:
@@ -142,23 +167,23 @@ class _SpillWriter:
                 oldest.close()
             f = open(self.path(unit), "ab")  # noqa: SIM115  (kept open across chunks, closed in close())
         self._open[unit] = f
-        records.tofile(f)
-        self.counts[unit] += len(records)
+        f.write(records.view(np.uint8).data)
+
+    def _close_files(self) -> None:
+        try:
+            for f in self._open.values():
+                f.close()
+        finally:
+            self._open.clear()
 
     def close(self) -> None:
-        for f in self._open.values():
-            f.close()
-        self._open.clear()
-
-
-def _records(chunk: CloudChunk, stamps_s: FloatArray, index: np.ndarray | slice,
-             origin: FloatArray) -> np.ndarray:
-    xyz = chunk.xyz[index] - origin
-    rec = np.empty(len(xyz), dtype=SPILL_RECORD)
-    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    rec["t"] = stamps_s[index]
-    rec["intensity"] = 0.0 if chunk.intensity is None else chunk.intensity[index]
-    return rec
+        """Wait for the queued writes and close the files; raises the :class:`OSError` of a
+        failed close (a failed write raises from its future)."""
+        if self._writer is not None:
+            self._writer.submit(self._close_files).result()
+            self._writer.shutdown(wait=True)
+            self._writer = None
+        self._close_files()
 
 
 class QuasiStaticSequence:
@@ -313,33 +338,34 @@ def slice_quasi_static(
     n_read = n_outside = 0
     try:
         progress.start("slice", total=cloud.info.n_points, unit="points")
-        for chunk in cloud.iter_chunks(chunk_points):
+        stager = _Stager(store, chunk_points)
+        # LAS/LAZ: the stored integers, converted while the records are assembled (no float64
+        # copy of each chunk); other readers: their float64 chunks.
+        iter_raw = getattr(cloud, "iter_raw_chunks", None)
+        chunks = iter_raw(chunk_points) if iter_raw is not None else cloud.iter_chunks(chunk_points)
+        for chunk in chunks:
             if chunk.stamps_s is None:
                 raise InputError("the cloud has no point times", cloud.path)
             n_read += len(chunk)
-            t = chunk.stamps_s
-            unit = np.searchsorted(edges, t, side="right") - 1
-            unit[t == edges[-1]] = n_units - 1  # the last edge belongs to the last window
-            inside = (unit >= 0) & (unit < n_units)
-            n_outside += len(t) - int(np.count_nonzero(inside))
-            if not inside.all():
-                keep = np.flatnonzero(inside)
-                chunk = CloudChunk(chunk.xyz[keep], t[keep],
-                                   None if chunk.intensity is None else chunk.intensity[keep])
-                unit, t = unit[keep], t[keep]
+            source = _RawSource(chunk) if isinstance(chunk, RawChunk) else _ChunkSource(chunk)
+            outside, segments = _unit_segments(chunk.stamps_s, edges)
+            n_outside += outside
             try:
-                _spill_chunk(store, chunk, t, unit)
+                for unit, index in segments:
+                    stager.spill(unit, source, index)
             except OSError as e:
                 raise _spill_error(e, folder.parent, n_read) from None
-            progress.advance(len(inside))
+            progress.advance(len(chunk))
         progress.finish()
-        store.close()
         try:
+            stager.finish()
+            store.close()
             (folder / SPILL_COMPLETE).write_bytes(b"")
         except OSError as e:
             raise _spill_error(e, folder.parent, n_read) from None
     except BaseException:
-        store.close()
+        with contextlib.suppress(OSError):
+            store.close()  # waits for queued writes, so that the folder can be deleted
         shutil.rmtree(folder, ignore_errors=True)
         raise
 
@@ -397,21 +423,136 @@ def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:
     return OutputError(f"cannot write the temporary slices: {e.strerror or e}", folder)
 
 
-def _spill_chunk(store: _SpillWriter, chunk: CloudChunk, stamps_s: FloatArray, unit: np.ndarray) -> None:
-    """Append the chunk's points to their units' files, keeping file order within a unit."""
-    if len(unit) == 0:
-        return
-    if np.all(unit[1:] >= unit[:-1]):
-        order: np.ndarray | None = None
-        sorted_unit = unit
-    else:
+def _unit_segments(t: np.ndarray, edges: FloatArray) -> tuple[int, list[tuple[int, slice | np.ndarray]]]:
+    """The points of a chunk with times ``t`` by unit: the number outside the edges, and
+    ``(unit, index)`` pairs in increasing unit order, ``index`` (a slice or an index array) in
+    file order.
+
+    Unit ``u`` holds ``edges[u] <= t < edges[u + 1]``; the last edge belongs to the last unit.
+    A time-sorted chunk (the usual case) is cut by bisection at the few edges it spans; any other
+    by a unit per point and a stable sort.
+    """
+    n, n_units = len(t), len(edges) - 1
+    if n == 0:
+        return 0, []
+    if n == 1 or bool(np.all(t[1:] >= t[:-1])):  # false with a NaN time
+        lo, hi = bisect_left(t, edges[0]), bisect_right(t, edges[-1])
+        if lo >= hi:
+            return n, []
+        first, last = (min(int(np.searchsorted(edges, t[i], side="right")) - 1, n_units - 1) for i in (lo, hi - 1))
+        segments: list[tuple[int, slice | np.ndarray]] = []
+        a = lo
+        for u in range(first, last + 1):
+            b = hi if u == last else bisect_left(t, edges[u + 1], a, hi)
+            if b > a:
+                segments.append((u, slice(a, b)))
+            a = b
+        return n - (hi - lo), segments
+    unit = np.searchsorted(edges, t, side="right") - 1
+    unit[t == edges[-1]] = n_units - 1
+    inside = (unit >= 0) & (unit < n_units)
+    n_inside = int(np.count_nonzero(inside))
+    keep: np.ndarray | None = None
+    if n_inside < n:
+        keep = np.flatnonzero(inside)
+        unit = unit[keep]
+    if n_inside == 0:
+        return n, []
+    order = keep
+    if not np.all(unit[1:] >= unit[:-1]):
         # A stable sort keeps the file order of points within each window.
-        order = np.argsort(unit, kind="stable")
-        sorted_unit = unit[order]
-    cuts = np.flatnonzero(np.diff(sorted_unit)) + 1
+        by_unit = np.argsort(unit, kind="stable")
+        unit = unit[by_unit]
+        order = by_unit if keep is None else keep[by_unit]
+    cuts = np.flatnonzero(np.diff(unit)) + 1
     starts = np.concatenate([[0], cuts])
-    stops = np.concatenate([cuts, [len(sorted_unit)]])
-    for a, b in zip(starts, stops, strict=True):
-        index = slice(a, b) if order is None else order[a:b]
-        target = int(sorted_unit[a])
-        store.append(target, _records(chunk, stamps_s, index, store.origins[target]))
+    stops = np.concatenate([cuts, [len(unit)]])
+    return n - n_inside, [(int(unit[a]), slice(int(a), int(b)) if order is None else order[a:b])
+                          for a, b in zip(starts, stops, strict=True)]
+
+
+class _RawSource:
+    """Spill fields of a :class:`RawChunk` (stored integers, converted here)."""
+
+    def __init__(self, chunk: RawChunk) -> None:
+        self.chunk = chunk
+        self.stamps_s = chunk.stamps_s
+        self.intensity = chunk.intensity
+
+    def offsets(self, k: int, index: slice | np.ndarray, origin: float, out: FloatArray) -> None:
+        """Coordinate ``k`` of the points at ``index`` minus ``origin`` into ``out`` (float64,
+        the same operations in the same order as the reader's float64 coordinates minus origin)."""
+        c = self.chunk
+        np.multiply(c.ints[k][index], c.scales[k], out=out)
+        np.add(out, c.offsets[k], out=out)
+        np.subtract(out, origin, out=out)
+
+
+class _ChunkSource:
+    """Spill fields of a :class:`CloudChunk` (float64 coordinates)."""
+
+    def __init__(self, chunk: CloudChunk) -> None:
+        self.xyz = chunk.xyz
+        self.stamps_s = chunk.stamps_s
+        self.intensity = chunk.intensity
+
+    def offsets(self, k: int, index: slice | np.ndarray, origin: float, out: FloatArray) -> None:
+        np.subtract(self.xyz[index, k], origin, out=out)
+
+
+class _Stager:
+    """Assembles spill records (float32 offsets from the unit's origin, time, intensity) in two
+    reused buffers of about a chunk each, handing each unit's run of points to the store as one
+    write: the write (in the store's thread, without the GIL) then overlaps with decoding the
+    next chunk, which holds the GIL. A full buffer is filled again once its writes are done."""
+
+    def __init__(self, store: _SpillWriter, chunk_points: int) -> None:
+        self.store = store
+        capacity = max(_BLOCK_POINTS, min(chunk_points, _STAGING_POINTS))
+        self.buffers = [np.empty(capacity, dtype=SPILL_RECORD) for _ in range(2)]
+        self.pending: list[list[Future[None]]] = [[] for _ in self.buffers]
+        self.current = 0  # the buffer being filled
+        self.used = 0  # points in it
+        self.tmp = np.empty(_BLOCK_POINTS, dtype=np.float64)
+
+    def _wait(self, k: int) -> None:
+        pending, self.pending[k] = self.pending[k], []
+        for done in pending:
+            done.result()
+
+    def spill(self, unit: int, source: _RawSource | _ChunkSource, index: slice | np.ndarray) -> None:
+        """Append the points of ``source`` at ``index`` (a slice or an index array), in that order,
+        to ``unit``."""
+        origin = self.store.origins[unit]
+        start, n = (index.start, index.stop - index.start) if isinstance(index, slice) else (0, len(index))
+        s = 0
+        while s < n:
+            rec = self.buffers[self.current]
+            if self.used == len(rec):  # full: go on in the other buffer once its writes are done
+                self.current = (self.current + 1) % len(self.buffers)
+                self.used = 0
+                self._wait(self.current)
+                continue
+            m = min(len(rec) - self.used, n - s)
+            out = rec[self.used: self.used + m]
+            xyz_out, t_out, i_out = (out["x"], out["y"], out["z"]), out["t"], out["intensity"]
+            for a in range(0, m, _BLOCK_POINTS):
+                b = min(a + _BLOCK_POINTS, m)
+                sel = (slice(start + s + a, start + s + b) if isinstance(index, slice)
+                       else index[s + a: s + b])
+                tmp = self.tmp[: b - a]
+                for k in range(3):
+                    source.offsets(k, sel, origin[k], tmp)
+                    xyz_out[k][a:b] = tmp
+                t_out[a:b] = source.stamps_s[sel]  # type: ignore[index]
+                i_out[a:b] = 0.0 if source.intensity is None else source.intensity[sel]
+            written = self.store.append(unit, out)
+            if written is not None:
+                self.pending[self.current].append(written)
+            self.used += m
+            s += m
+
+    def finish(self) -> None:
+        """Wait for every write; raises the :class:`OSError` of a failed one."""
+        for k in range(len(self.buffers)):
+            self._wait(k)

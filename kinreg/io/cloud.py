@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
+
 from kinreg.errors import CloudError
 from kinreg.types import CloudChunk
 
@@ -37,8 +39,34 @@ class CloudInfo:
     details: dict[str, str] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class RawChunk:
+    """A block of points as a LAS file stores them, for a consumer that converts them itself
+    (see :meth:`~kinreg.io.las.LasCloudReader.iter_raw_chunks`).
+
+    Coordinate ``k`` of point ``i`` in the object frame is ``ints[k][i] * scales[k] + offsets[k]``,
+    evaluated in float64 in that order: bit for bit what ``iter_chunks`` yields. ``intensity`` holds
+    the stored values (``iter_chunks`` gives them as float32). The arrays are strided views into a
+    buffer the reader reuses: they are valid only until the next chunk is requested.
+    """
+
+    ints: tuple[np.ndarray, np.ndarray, np.ndarray]
+    scales: tuple[np.float64, np.float64, np.float64]
+    offsets: tuple[np.float64, np.float64, np.float64]
+    stamps_s: np.ndarray | None
+    intensity: np.ndarray | None
+    first_index: int = 0
+
+    def __len__(self) -> int:
+        return len(self.ints[0])
+
+
 class CloudReader(Protocol):
-    """A streaming reader. Use as a context manager; iterate ``iter_chunks`` once or more."""
+    """A streaming reader. Use as a context manager; iterate ``iter_chunks`` once or more.
+
+    A reader may also offer ``iter_raw_chunks(chunk_points)`` yielding :class:`RawChunk` blocks
+    (the LAS/LAZ reader does); consumers that use it must fall back to ``iter_chunks`` without it.
+    """
 
     path: Path
     info: CloudInfo
