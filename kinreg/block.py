@@ -153,17 +153,11 @@ def adjust_block(
         except EstimationError:
             if not last_round:
                 raise
-            stations_grown = None  # singular or apart without the last round's rejections: all back
+            back = last_round  # singular or apart without the last round's rejections: all back
         else:
             variance = np.trace(Qxx_blocks[:, :3, :3], axis1=1, axis2=2)
-            grown = np.flatnonzero(variance > _MAX_VARIANCE_GROWTH * variance_before) if last_round else []
-            stations_grown = set(np.flatnonzero(np.isin(free_index, grown)).tolist()) if len(grown) else set()
-        if stations_grown is None or stations_grown:
-            # Together the last round's rejections left some direction of some stations resting on
-            # nothing (none alone was its only support): those touching such a station are taken
-            # back and kept; the others may be rejected again in the next round.
-            back = [k for k in last_round if {observations[k].i, observations[k].j} & (stations_grown or set())]
-            back = back or last_round
+            back = _taken_back(last_round, observations, free_index, variance, variance_before)
+        if back:
             log.info("block: observations %s taken back (without them the network is undetermined)", back)
             for k in back:
                 active[k] = True
@@ -330,6 +324,21 @@ def _test_observations(poses, observations, active, fixed, free_index, weights, 
         for k in np.flatnonzero(keep)
     ]
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag
+
+
+def _taken_back(last_round: list[int], observations: list[RelativeObservation], free_index: np.ndarray,
+                variance: np.ndarray, variance_before: np.ndarray) -> list[int]:
+    """The last round's rejections to take back: together they left some direction of some
+    stations resting on nothing (none alone was its only support), seen as a position variance
+    grown by ``_MAX_VARIANCE_GROWTH``. Those touching such a station come back (all of the round
+    if none does); the others may be rejected again in the next round."""
+    if not last_round:
+        return []
+    grown = np.flatnonzero(variance > _MAX_VARIANCE_GROWTH * variance_before)
+    if not len(grown):
+        return []
+    stations = set(np.flatnonzero(np.isin(free_index, grown)).tolist())
+    return [k for k in last_round if {observations[k].i, observations[k].j} & stations] or last_round
 
 
 _MIN_DIRECTION_REDUNDANCY = 0.02

@@ -86,8 +86,8 @@ class DriftConfig:
     Defaults describe a handheld SLAM unit of the GeoSLAM class (a few mm over a 6 s window,
     1-3 cm over 100 m); set them from your scanner's specification.
 
-    The rates are a prior: the block adjustment measures the drift (the change of its
-    corrections between stations) and adjusts again with the measured rates, faster or slower
+    The rates are a prior: the block adjustment measures the drift (the error of the
+    trajectory's relative motion between stations) and adjusts again with the measured rates, faster or slower
     than the prior, but never below ``measured_rate_floor`` times the prior (a direction no plane
     fixes shows no drift in the corrections, which would otherwise read as none at all).
     """

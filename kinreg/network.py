@@ -277,7 +277,7 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     """The drift velocity measured by the adjustment: the error of the trajectory's relative motion
     between consecutive quasi-static stations (the adjusted step against the initial one turned by
     the first station's correction; the change of the correction's rotation) over their time difference,
-    robust RMS (from the median) per object axis, less the adjustment's own noise in that change (the covariance of the
+    RMS per object axis (:func:`_rms_rate`), less the adjustment's own noise in that change (the covariance of the
     adjusted relative pose, from the block's trajectory-link tests). The estimate is bounded below
     by ``floor_share`` times the prior rates (1: it only ever raises them); with too few
     stations to measure, the prior is returned.
@@ -293,7 +293,7 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
         return prior
     correction = result.poses.compose(result.poses_initial.inverse())  # C_k = T_adjusted T_initial^-1
     rot = quat_to_rotvec(correction.quat_wxyz)
-    R_corr = correction.rotation_matrix
+    R_corr, R_adj = correction.rotation_matrix, result.poses.rotation_matrix
     p_adj, p_init = result.poses.t_xyz, result.poses_initial.t_xyz
     pos_v, rot_v, pos_noise, rot_noise = [], [], [], []
     for a, b in itertools.pairwise(seq):
@@ -301,7 +301,7 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
             continue  # consecutive stations of the same run only: runs are not tied by a trajectory
         dt = stations[b].t_s - stations[a].t_s
         cov = noise.get((a, b), np.zeros((6, 6)))
-        R = result.poses.rotation_matrix[a]
+        R = R_adj[a]
         pos_noise.append(np.diag(R @ cov[:3, :3] @ R.T) / dt**2)
         rot_noise.append(np.diag(R @ cov[3:, 3:] @ R.T) / dt**2)
         # The relative motion's error, not the change of the shifts: a rotation error already

@@ -482,10 +482,7 @@ class _RawSource:
     def offsets(self, k: int, index: slice | np.ndarray, origin: float, out: FloatArray) -> None:
         """Coordinate ``k`` of the points at ``index`` minus ``origin`` into ``out`` (float64,
         the same operations in the same order as the reader's float64 coordinates minus origin)."""
-        c = self.chunk
-        np.multiply(c.ints[k][index], c.scales[k], out=out)
-        np.add(out, c.offsets[k], out=out)
-        np.subtract(out, origin, out=out)
+        np.subtract(self.chunk.coordinate(k, index, out), origin, out=out)
 
 
 class _ChunkSource:
@@ -546,9 +543,7 @@ class _Stager:
                     xyz_out[k][a:b] = tmp
                 t_out[a:b] = source.stamps_s[sel]  # type: ignore[index]
                 i_out[a:b] = 0.0 if source.intensity is None else source.intensity[sel]
-            written = self.store.append(unit, out)
-            if written is not None:
-                self.pending[self.current].append(written)
+            self.pending[self.current].append(self.store.append(unit, out))
             self.used += m
             s += m
 

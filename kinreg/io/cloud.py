@@ -45,7 +45,7 @@ class RawChunk:
     (see :meth:`~kinreg.io.las.LasCloudReader.iter_raw_chunks`).
 
     Coordinate ``k`` of point ``i`` in the object frame is ``ints[k][i] * scales[k] + offsets[k]``,
-    evaluated in float64 in that order: bit for bit what ``iter_chunks`` yields. ``intensity`` holds
+    evaluated in float64 in that order (:meth:`coordinate`, which ``iter_chunks`` uses too). ``intensity`` holds
     the stored values (``iter_chunks`` gives them as float32). The arrays are strided views into a
     buffer the reader reuses: they are valid only until the next chunk is requested.
     """
@@ -59,6 +59,11 @@ class RawChunk:
 
     def __len__(self) -> int:
         return len(self.ints[0])
+
+    def coordinate(self, k: int, index: slice | np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Object-frame coordinate ``k`` (float64) of the points at ``index``, into ``out``."""
+        np.multiply(self.ints[k][index], self.scales[k], out=out)
+        return np.add(out, self.offsets[k], out=out)
 
 
 class CloudReader(Protocol):

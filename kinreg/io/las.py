@@ -79,9 +79,8 @@ class LasCloudReader:
         for raw in self.iter_raw_chunks(chunk_points):
             n = len(raw)
             xyz = np.empty((n, 3), dtype=np.float64)
-            xyz[:, 0] = raw.ints[0] * raw.scales[0] + raw.offsets[0]
-            xyz[:, 1] = raw.ints[1] * raw.scales[1] + raw.offsets[1]
-            xyz[:, 2] = raw.ints[2] * raw.scales[2] + raw.offsets[2]
+            for k in range(3):
+                raw.coordinate(k, slice(None), xyz[:, k])
             stamps = None if raw.stamps_s is None else np.array(raw.stamps_s, dtype=np.float64)
             intensity = None if raw.intensity is None else np.array(raw.intensity, dtype=np.float32)
             yield CloudChunk(xyz=xyz, stamps_s=stamps, intensity=intensity, first_index=raw.first_index)
