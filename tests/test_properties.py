@@ -193,6 +193,7 @@ MAPPINGS = st.lists(st.tuples(st.sampled_from(["time", "x", "y", "z", "qw", "qx"
 @PARSER_SETTINGS
 @given(MAPPINGS, st.lists(CSV_LINES, max_size=6).map("\n".join))
 @example("time=0,x=1,y=2,z=3,qw=4,qx=5,qy=6,qz=7", "1,0,0,0,1,0,0,0\n2,0,0,0,1,0,0,0")
+@example("time=¹", "")  # a digit that int() does not read
 def test_csv_with_any_column_mapping_raises_only_trajectory_error(mapping_text: str, text: str) -> None:
     try:
         mapping = parse_column_mapping(mapping_text)

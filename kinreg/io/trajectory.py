@@ -386,7 +386,7 @@ def parse_column_mapping(text: str) -> dict[str, str | int]:
         if not sep or key not in COLUMNS:
             raise TrajectoryError(f"bad column mapping '{part}': use name=column with name in {', '.join(COLUMNS)}")
         value = value.strip()
-        mapping[key] = int(value) if value.isdigit() else value
+        mapping[key] = int(value) if value.isdecimal() else value  # isdigit() also takes "¹", int() does not
     return mapping
 
 
