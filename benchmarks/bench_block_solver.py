@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from kinreg.sparse import factorize, selected_inverse
+from kinreg.estimate.sparse import factorize, selected_inverse
 
 SIGMA_T_M = 1e-3
 SIGMA_R_RAD = 1e-4

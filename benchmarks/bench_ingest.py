@@ -89,14 +89,14 @@ def child(mode: str, traj_path: str, cloud_path: str, out_path: str) -> None:
         from kinreg.config import SlicingConfig
         from kinreg.io.cloud import open_cloud
         from kinreg.io.trajectory import read_trajectory
-        from kinreg.slicing import slice_quasi_static
+        from kinreg.run.spill import slice_quasi_static
 
         traj = read_trajectory(traj_path)
         with open_cloud(cloud_path) as cloud, slice_quasi_static(traj, cloud, SlicingConfig()) as seq:
             n = seq.summary.n_points_read
     elif mode == "slice+e57":
         from kinreg.config import KinregConfig
-        from kinreg.pipeline import slice_to_e57
+        from kinreg.run.pipeline import slice_to_e57
 
         n = slice_to_e57(traj_path, cloud_path, out_path, KinregConfig(), overwrite=True).n_points_read
     wall = time.perf_counter() - t0

@@ -1,8 +1,8 @@
 """Networking and block-adjustment speed.
 
 1. Links per second: slice the sample run, detect planes, then time the matching + pairwise
-   adjustment over all candidate pairs (``kinreg.network.link_stations``).
-2. ``kinreg.block.adjust_block`` end to end (Gauss-Newton, selected inverse, tests, variance
+   adjustment over all candidate pairs (``kinreg.estimate.network.link_stations``).
+2. ``kinreg.estimate.block.adjust_block`` end to end (Gauss-Newton, selected inverse, tests, variance
    components, data snooping) on synthetic networks of 231 and 20,000 stations: a chain with
    its 4 successors linked (some links rank 5) and loop closures every 50 stations.
 
@@ -24,13 +24,13 @@ REPO = Path(__file__).resolve().parents[1]
 
 def bench_links() -> dict:
     from kinreg.config import KinregConfig
+    from kinreg.estimate.matching import candidate_pairs
+    from kinreg.estimate.network import link_stations
     from kinreg.io.cloud import open_cloud
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.matching import candidate_pairs
-    from kinreg.network import link_stations
-    from kinreg.pipeline import detect_all_planes
     from kinreg.progress import NullProgress
-    from kinreg.slicing import slice_quasi_static
+    from kinreg.run.pipeline import detect_all_planes
+    from kinreg.run.spill import slice_quasi_static
 
     cfg = KinregConfig()
     data = REPO / "sample_data"
@@ -91,9 +91,9 @@ def synthetic_network(n: int, seed: int = 0):
 
 
 def bench_block(n: int) -> dict:
-    from kinreg.block import adjust_block
     from kinreg.config import BlockConfig
-    from kinreg.sparse import HAVE_CHOLMOD
+    from kinreg.estimate.block import adjust_block
+    from kinreg.estimate.sparse import HAVE_CHOLMOD
 
     truth, initial, obs = synthetic_network(n)
     fixed = np.zeros(n, dtype=bool)

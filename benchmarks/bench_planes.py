@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO / "tests"))
 from test_planes import angle_deg, find_plane, make_room_scan, well_sampled  # noqa: E402
 
 from kinreg.config import PlanesConfig  # noqa: E402
-from kinreg.planes import detect_planes  # noqa: E402
+from kinreg.estimate.planes import detect_planes  # noqa: E402
 from kinreg.types import Scan  # noqa: E402
 
 

@@ -91,7 +91,7 @@ def generate(folder: Path, n_points: float, workers: int) -> tuple[Path, Path, d
     """Write ``run_trajectory.txt`` and ``run_cloud.laz`` of a seed-like run into ``folder``."""
     import laspy
 
-    from kinreg.executor import make_executor
+    from kinreg.run.executor import make_executor
     from kinreg.simulation import _las_header, write_trajectory_geoslam
 
     t0 = time.perf_counter()

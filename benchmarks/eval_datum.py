@@ -78,8 +78,8 @@ def evaluate(name: str, work: Path) -> dict:
 
     from kinreg.config import KinregConfig
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.pipeline import ProcessInputs, process
-    from kinreg.report import rigid_fit
+    from kinreg.report.tables import rigid_fit
+    from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation import simulate_run, write_run
 
     data = REPO / "sample_data" if name == "sample" else work / "data"

@@ -37,7 +37,7 @@ JUMP_M = 0.5
 
 def errors_after_rigid_fit(xyz: np.ndarray, truth: np.ndarray) -> dict:
     """RMS and max [mm] of the position errors after a rigid fit onto the truth."""
-    from kinreg.report import rigid_fit
+    from kinreg.report.tables import rigid_fit
 
     R, t = rigid_fit(xyz, truth)
     err = np.linalg.norm(xyz @ R.T + t - truth, axis=1) * 1000.0
@@ -92,9 +92,9 @@ def with_jumps(data: Path, folder: Path, jump_times: tuple[float, float]) -> tup
 def run(name: str, work: Path, inject: bool = False, jumps: bool = False, seed: int = 0) -> dict:
     from eval_accuracy import scenario_config
 
-    import kinreg.network as network
+    import kinreg.estimate.network as network
     from kinreg.config import KinregConfig
-    from kinreg.pipeline import ProcessInputs, process
+    from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation import simulate_run, write_run
     from kinreg.types import PlaneMatch
 

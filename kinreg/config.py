@@ -68,7 +68,7 @@ class PlanesConfig:
     # Floors added in quadrature to the least-squares sigmas: quasi-static scans have correlated
     # errors (drift inside the window, incidence-angle range bias, wall unevenness) that the
     # point-count-driven LS covariance (~0.03 mm for 1e5 points) does not see. The drift inside
-    # the window is added per plane on top (kinreg.network.with_window_deformation). Chosen with
+    # the window is added per plane on top (kinreg.estimate.network.with_window_deformation). Chosen with
     # the normalised station errors of repeated simulated runs (benchmarks/RESULTS.md): 0.5 mm /
     # 0.2 mrad gave 0.6-0.7 (too conservative), 0.25 mm / 0.1 mrad worse stations.
     min_sigma_d_m: float = 0.00035
@@ -82,7 +82,7 @@ class DriftConfig:
 
     sigma(dt) = sqrt(floor^2 + (rate * dt)^2), per axis. It weights the trajectory's own links
     between stations and the prior of every pairwise adjustment, and it sets the bias of a
-    quasi-static scan (drift inside its window, see ``kinreg.network.window_bias_sigmas``).
+    quasi-static scan (drift inside its window, see ``kinreg.estimate.network.window_bias_sigmas``).
     Defaults describe a handheld SLAM unit of the GeoSLAM class (a few mm over a 6 s window,
     1-3 cm over 100 m); set them from your scanner's specification.
 
@@ -176,7 +176,7 @@ class ReferenceConfig:
 @dataclasses.dataclass(frozen=True)
 class DiscontinuityConfig:
     """``[jumps]``: gross errors of the trajectory, found in the trajectory itself
-    (:func:`kinreg.discontinuity.detect_jumps`). A jump (a SLAM failure: the trajectory steps by
+    (:func:`kinreg.estimate.jumps.detect_jumps`). A jump (a SLAM failure: the trajectory steps by
     decimetres between two rows and carries the step on) is taken out of the stations' initial
     poses, of the trajectory links and of the corrected cloud and trajectory; the scan whose
     window contains it is not linked (its points were georeferenced on both sides of the step).
@@ -184,7 +184,7 @@ class DiscontinuityConfig:
 
     An interval is a jump when its translation excess is at least ``min_step_m`` **and**
     ``k_sigma`` robust noise sigmas, or its rotation excess at least ``min_step_deg`` and
-    ``k_sigma`` sigmas, under both clocks (see :mod:`kinreg.discontinuity`).
+    ``k_sigma`` sigmas, under both clocks (see :mod:`kinreg.estimate.jumps`).
 
     - ``min_step_m = 0.05``: walking at 100 Hz changes the increment by well under a millimetre
       between samples; the largest excess of a clean interval is 0.1 mm on the simulated run and

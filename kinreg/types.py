@@ -160,7 +160,7 @@ class Plane:
     inliers in the plane (scan frame), ``area_m2`` its area, ``rms_m`` the RMS of the
     orthogonal residuals of the ``n_points`` full-resolution inliers. ``t_offset_s`` is when the
     plane was seen, relative to the scan's centre time: drift inside the window moves the plane by
-    the drift over that time (see :func:`kinreg.network.with_window_deformation`).
+    the drift over that time (see :func:`kinreg.estimate.network.with_window_deformation`).
     """
 
     scan_id: int

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from kinreg.block import adjust_block
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
+from kinreg.estimate.block import adjust_block
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.types import ObservationKind, RelativeObservation
 
@@ -199,7 +199,7 @@ def test_drift_rates_measure_the_relative_motion_not_a_turned_walk():
     0.2 mm/s along x is measured as such."""
     from types import SimpleNamespace
 
-    from kinreg.network import DriftRates, Station, estimate_drift_rates
+    from kinreg.estimate.network import DriftRates, Station, estimate_drift_rates
     from kinreg.types import ScanKind
 
     n = 40

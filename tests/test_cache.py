@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 from planefixtures import pose, scan_planes
 
-from kinreg.cache import (
+from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, PlanesConfig, SlicingConfig, WindowMode
+from kinreg.estimate.matching import match_planes
+from kinreg.estimate.network import Station
+from kinreg.estimate.pairwise import adjust_pair
+from kinreg.geometry import Pose
+from kinreg.run.stage_cache import (
     StageCache,
     links_from_arrays,
     links_to_arrays,
@@ -21,11 +26,6 @@ from kinreg.cache import (
     windows_from_arrays,
     windows_to_arrays,
 )
-from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, PlanesConfig, SlicingConfig, WindowMode
-from kinreg.geometry import Pose
-from kinreg.matching import match_planes
-from kinreg.network import Station
-from kinreg.pairwise import adjust_pair
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch, ScanKind, ScanWindow
 
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from conftest import SAMPLE_DATA, make_trajectory
 
-from kinreg.discontinuity import (
+from kinreg.errors import ConfigError
+from kinreg.estimate.jumps import (
     DiscontinuityConfig,
     TrajectoryJump,
     detect_jumps,
@@ -18,7 +19,6 @@ from kinreg.discontinuity import (
     remove_jumps,
     step_between,
 )
-from kinreg.errors import ConfigError
 from kinreg.geometry import Pose, quat_to_matrix, rotation_angle_rad, rotvec_to_quat
 from kinreg.io.trajectory import read_trajectory
 from kinreg.simulation import (

@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 from planefixtures import pose, scan_planes
 
-from kinreg.cache import links_to_arrays
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
 from kinreg.errors import ConfigError
-from kinreg.executor import THREAD_VARIABLES, ExecutorContext, make_executor, parallel_map
-from kinreg.matching import match_planes
-from kinreg.pairwise import adjust_pair
+from kinreg.estimate.matching import match_planes
+from kinreg.estimate.pairwise import adjust_pair
+from kinreg.run.executor import THREAD_VARIABLES, ExecutorContext, make_executor, parallel_map
+from kinreg.run.stage_cache import links_to_arrays
 
 HAVE_DASK = importlib.util.find_spec("distributed") is not None
 
 
-# Top-level functions: the workers import them by name (see kinreg.executor).
+# Top-level functions: the workers import them by name (see kinreg.run.executor).
 def noisy_sum(seed: int) -> np.ndarray:
     """Floating-point work whose result depends only on the item."""
     rng = np.random.default_rng(seed)

@@ -16,7 +16,7 @@ import pytest
 
 from kinreg.config import KinregConfig
 from kinreg.io.trajectory import read_trajectory
-from kinreg.pipeline import ProcessInputs, process
+from kinreg.run.pipeline import ProcessInputs, process
 from kinreg.simulation import config_from_dict, simulate_run, write_run
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"

@@ -11,12 +11,12 @@ import pytest
 from conftest import SAMPLE_DATA
 
 from kinreg.config import KinregConfig
-from kinreg.correction import DriftCorrection
-from kinreg.discontinuity import detect_jumps, remove_jumps
+from kinreg.estimate.correction import DriftCorrection
+from kinreg.estimate.jumps import detect_jumps, remove_jumps
 from kinreg.geometry import Pose
 from kinreg.io.trajectory import read_trajectory, write_trajectory_geoslam
-from kinreg.pipeline import ProcessInputs, process
-from kinreg.report import rigid_fit
+from kinreg.report.tables import rigid_fit
+from kinreg.run.pipeline import ProcessInputs, process
 from kinreg.types import Trajectory
 
 JUMP = np.array([0.5, 0.0, 0.0])

@@ -3,7 +3,7 @@
 import pytest
 
 from kinreg.config import KinregConfig
-from kinreg.pipeline import ProcessInputs, process
+from kinreg.run.pipeline import ProcessInputs, process
 from kinreg.simulation import SimulationConfig, simulate_run, write_run
 
 

@@ -1,4 +1,4 @@
-"""Plane detection against a synthetic room with known planes (kinreg.planes).
+"""Plane detection against a synthetic room with known planes (kinreg.estimate.planes).
 
 The room is built and ray cast here (``make_room_scan``): floor, ceiling, four walls, an
 interior wall 0.15 m thick with a full-height door opening (one plane, two patches), a box and a
@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 from kinreg.config import PlanesConfig
+from kinreg.estimate.planes import detect_planes
 from kinreg.geometry import Pose, rotvec_to_quat
-from kinreg.planes import detect_planes
 from kinreg.types import Plane, Scan, ScanKind
 
 # --------------------------------------------------------------------------- the synthetic room

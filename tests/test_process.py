@@ -10,7 +10,7 @@ from kinreg_cli.main import main
 
 from kinreg.io.e57 import list_e57_scans
 from kinreg.io.trajectory import read_trajectory
-from kinreg.report import STATIONS_HEADER, rigid_fit
+from kinreg.report.tables import STATIONS_HEADER, rigid_fit
 from kinreg.simulation import SimulationConfig, simulate_run, write_run
 
 

@@ -315,7 +315,7 @@ def test_load_config_raises_only_config_error(text: str) -> None:
 def test_no_unsafe_loading_in_kinreg_sources() -> None:
     """Configuration is read with tomllib only; nothing a user supplies is unpickled or evaluated.
 
-    kinreg/executor.py may pickle its own arguments to worker processes (multiprocessing does);
+    kinreg/run/executor.py may pickle its own arguments to worker processes (multiprocessing does);
     it must not import pickle to load anything."""
     root = Path(__file__).resolve().parents[1]
     sources = [*(root / "kinreg").rglob("*.py"), *(root / "cli").rglob("*.py")]

@@ -14,8 +14,8 @@ from conftest import SAMPLE_DATA, make_trajectory
 from kinreg_cli.main import main
 
 from kinreg.calibration.model import SystemCalibration, assign_points_to_planes
-from kinreg.correction import DriftCorrection, write_corrected_las
 from kinreg.errors import ConfigError
+from kinreg.estimate.correction import DriftCorrection, write_corrected_las
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.io.reference_planes import parse_reference_planes, read_reference_planes, rotation_from_degrees
 from kinreg.io.trajectory import read_trajectory, write_trajectory_geoslam

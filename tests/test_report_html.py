@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import kinreg.report_html
-from kinreg.report_html import render_html
+import kinreg.report.html
+from kinreg.report.html import render_html
 
 VOID = {"meta", "br", "hr", "img", "input", "link", "col", "area", "base", "wbr", "source"}
 SVG_LEAVES = {"rect", "line", "polyline", "circle", "stop", "path"}  # may be self-closed in SVG
@@ -225,7 +225,7 @@ def test_large_coordinates_get_an_axis_offset():
 
 
 def test_doctests():
-    assert doctest.testmod(kinreg.report_html).failed == 0
+    assert doctest.testmod(kinreg.report.html).failed == 0
 
 
 @pytest.mark.browser

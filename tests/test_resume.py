@@ -23,8 +23,8 @@ import pytest
 from kinreg_cli.main import main
 
 from kinreg.config import load_config
-from kinreg.pipeline import OUTPUT_FILES, ProcessInputs, process
-from kinreg.resume import CACHE_FOLDER
+from kinreg.run.output_folder import CACHE_FOLDER
+from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
 from kinreg.simulation import SimulationConfig, simulate_run, write_run
 
 VOLATILE_REPORT_KEYS = ("timings_s", "stage_cache")

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from kinreg import sparse as ks
 from kinreg.errors import EstimationError
-from kinreg.sparse import factorize, selected_inverse
+from kinreg.estimate import sparse as ks
+from kinreg.estimate.sparse import factorize, selected_inverse
 
 BACKENDS = [pytest.param("cholmod", marks=pytest.mark.skipif(not ks.HAVE_CHOLMOD, reason="no scikit-sparse")),
             "scipy"]
@@ -141,10 +141,10 @@ def test_negative_definite_raises(backend):
 def test_scipy_backend_warns_once(network, monkeypatch, caplog):
     N, _, _ = network
     monkeypatch.setattr(ks, "_fallback_warned", False)
-    with caplog.at_level(logging.WARNING, logger="kinreg.sparse"):
+    with caplog.at_level(logging.WARNING, logger="kinreg.estimate.sparse"):
         factorize(N, backend="scipy")
         factorize(N, backend="scipy")
-    messages = [r.getMessage() for r in caplog.records if r.name == "kinreg.sparse"]
+    messages = [r.getMessage() for r in caplog.records if r.name == "kinreg.estimate.sparse"]
     assert messages == [ks.FALLBACK_WARNING]
 
 
@@ -152,7 +152,7 @@ def test_fallback_when_cholmod_missing(network, monkeypatch, caplog):
     N, _, _ = network
     monkeypatch.setattr(ks, "HAVE_CHOLMOD", False)
     monkeypatch.setattr(ks, "_fallback_warned", False)
-    with caplog.at_level(logging.WARNING, logger="kinreg.sparse"):
+    with caplog.at_level(logging.WARNING, logger="kinreg.estimate.sparse"):
         assert factorize(N).backend == "scipy"
     assert "CHOLMOD" in caplog.text
     with pytest.raises(ImportError):

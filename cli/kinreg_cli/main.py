@@ -70,7 +70,7 @@ def info(
     ] = "auto",
 ) -> None:
     """What a trajectory or cloud file contains: counts, time range, extent, fields."""
-    from kinreg.inspect import describe_cloud, describe_trajectory
+    from kinreg.io.inspect import describe_cloud, describe_trajectory
 
     if file.suffix.lower() in CLOUD_SUFFIXES:
         rows = describe_cloud(file, full=full, progress=RichProgress(console) if full else None)
@@ -95,7 +95,7 @@ def slice_command(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output.")] = False,
 ) -> None:
     """Slice a kinematic run into quasi-static scans and export them as one E57 sequence."""
-    from kinreg.pipeline import slice_to_e57
+    from kinreg.run.pipeline import slice_to_e57
 
     cfg = _config(config, {"slicing.window_s": window_s, "slicing.mode": mode})
     summary = slice_to_e57(trajectory, cloud, out_path, cfg, overwrite=overwrite, progress=RichProgress(console))
@@ -121,7 +121,7 @@ def link_command(
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Slice, detect planes per scan and adjust every candidate pair (no block adjustment)."""
-    from kinreg.pipeline import link_to_folder
+    from kinreg.run.pipeline import link_to_folder
 
     cfg = _config(config, {"slicing.window_s": window_s})
     summary = link_to_folder(trajectory, cloud, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console),
@@ -157,7 +157,7 @@ def process_command(
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
 ) -> None:
     """Run everything: slice, planes, links, block adjustment, corrected outputs, reports."""
-    from kinreg.pipeline import ProcessInputs, process
+    from kinreg.run.pipeline import ProcessInputs, process
 
     cfg = _config(config, {"slicing.window_s": window_s})
     inputs = ProcessInputs.from_runs(trajectory, cloud, static, reference)

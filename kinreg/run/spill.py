@@ -32,12 +32,12 @@ from typing import BinaryIO
 
 import numpy as np
 
-from kinreg.cache import windows_from_arrays, windows_to_arrays
 from kinreg.config import SlicingConfig, WindowMode
 from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
 from kinreg.progress import NullProgress, Progress
+from kinreg.run.stage_cache import windows_from_arrays, windows_to_arrays
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, Trajectory
 
 log = logging.getLogger(__name__)

@@ -391,7 +391,7 @@ def links_from_arrays(a: Mapping[str, np.ndarray]) -> list[Link]:
 
 
 def stations_to_arrays(stations: Sequence[Any]) -> Arrays:
-    """Stations (:class:`kinreg.network.Station`) as plain arrays; exact round trip with
+    """Stations (:class:`kinreg.estimate.network.Station`) as plain arrays; exact round trip with
     :func:`stations_from_arrays`."""
     return {
         "scan_id": np.array([s.scan_id for s in stations], dtype=np.int64),
@@ -406,7 +406,7 @@ def stations_to_arrays(stations: Sequence[Any]) -> Arrays:
 
 def stations_from_arrays(a: Mapping[str, np.ndarray]) -> list[Any]:
     """Inverse of :func:`stations_to_arrays`."""
-    from kinreg.network import Station  # network imports the stages; keep this module light
+    from kinreg.estimate.network import Station  # network imports the stages; keep this module light
 
     t = a["times_s"]
     runs = a["run"] if "run" in a else np.zeros(len(a["scan_id"]), dtype=np.int64)

@@ -25,9 +25,9 @@ from scipy import stats
 
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
+from kinreg.estimate.sparse import factorize, selected_inverse
 from kinreg.geometry import FloatArray, Pose, skew
 from kinreg.progress import NullProgress, Progress
-from kinreg.sparse import factorize, selected_inverse
 from kinreg.types import BlockResult, ObservationKind, ObservationTest, RelativeObservation
 
 log = logging.getLogger(__name__)

@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 import kinreg
+from kinreg.estimate.network import Station
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
 from kinreg.io.atomic import atomic_path
-from kinreg.network import Station
 from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, ScanKind
 
 REPORT_SCHEMA_VERSION = 1

@@ -16,7 +16,7 @@ One thread per local worker: N workers already keep N cores busy, so each worker
 (OpenBLAS, MKL, BLIS), OpenMP (open3d) and numexpr to one thread (:data:`THREAD_VARIABLES`);
 otherwise every worker would start a pool per core and they would fight over the cores. The
 variables must be set before a worker loads those libraries, so they are set in the forkserver
-itself (its only preloaded module is :mod:`kinreg._worker_threads`; ``__main__`` is not
+itself (its only preloaded module is :mod:`kinreg.run._worker_threads`; ``__main__`` is not
 preloaded), and again in each worker's initialiser, which also limits pools already loaded
 when ``threadpoolctl`` is installed. The calling process is left as it is: in-process runs
 (``workers=1``) keep every BLAS thread. Dask workers are configured by their cluster (Dask's
@@ -118,7 +118,7 @@ def _mp_context() -> multiprocessing.context.BaseContext:
     # Effective when this starts the forkserver (the first pool of the process): workers are forked
     # from a server that has set the thread variables and has not loaded numpy (nor __main__, which
     # may import it).
-    context.set_forkserver_preload(["kinreg._worker_threads"])
+    context.set_forkserver_preload(["kinreg.run._worker_threads"])
     return context
 
 

@@ -12,8 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from kinreg.block import adjust_block, loose_parts
-from kinreg.cache import links_from_arrays, links_to_arrays
 from kinreg.config import (
     Disconnected,
     DiscontinuityConfig,
@@ -24,17 +22,12 @@ from kinreg.config import (
     StaticDatum,
     format_toml,
 )
-from kinreg.correction import write_corrected_las
-from kinreg.discontinuity import TrajectoryJump, detect_jumps, jump_arrays, jump_removal
 from kinreg.errors import ConfigError, EstimationError
-from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
-from kinreg.geometry import Pose
-from kinreg.io.atomic import check_writable_target
-from kinreg.io.cloud import open_cloud
-from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
-from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
-from kinreg.matching import candidate_pairs
-from kinreg.network import (
+from kinreg.estimate.block import adjust_block, loose_parts
+from kinreg.estimate.correction import write_corrected_las
+from kinreg.estimate.jumps import TrajectoryJump, detect_jumps, jump_arrays, jump_removal
+from kinreg.estimate.matching import candidate_pairs
+from kinreg.estimate.network import (
     DriftRates,
     Station,
     block_observations,
@@ -45,10 +38,16 @@ from kinreg.network import (
     station_pairs,
     with_window_bias,
 )
-from kinreg.planes import detect_planes
+from kinreg.estimate.planes import detect_planes
+from kinreg.estimate.reference import Tie, as_built, associate, tie_observations, to_reference_frame
+from kinreg.geometry import Pose
+from kinreg.io.atomic import check_writable_target
+from kinreg.io.cloud import open_cloud
+from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
+from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
 from kinreg.progress import NullProgress, Progress
-from kinreg.reference import Tie, as_built, associate, tie_observations, to_reference_frame
-from kinreg.report import (
+from kinreg.report.html import render_html
+from kinreg.report.tables import (
     build_report,
     format_links_csv,
     format_planes_csv,
@@ -58,8 +57,8 @@ from kinreg.report import (
     write_report_json,
     write_text,
 )
-from kinreg.report_html import render_html
-from kinreg.resume import (
+from kinreg.run.executor import ExecutorContext, in_process, make_executor, parallel_map
+from kinreg.run.output_folder import (
     CachedSlices,
     RunCache,
     content_parts,
@@ -70,7 +69,7 @@ from kinreg.resume import (
     scan_planes_to_arrays,
     sliced_run,
 )
-from kinreg.runs import (
+from kinreg.run.runs import (
     RunInputs,
     adjusted_scans,
     inputs_report,
@@ -81,7 +80,8 @@ from kinreg.runs import (
     slicing_report,
     trajectory_plot,
 )
-from kinreg.slicing import QuasiStaticSequence, SlicingSummary, slice_quasi_static
+from kinreg.run.spill import QuasiStaticSequence, SlicingSummary, slice_quasi_static
+from kinreg.run.stage_cache import links_from_arrays, links_to_arrays
 from kinreg.types import (
     BlockResult,
     Link,
@@ -145,7 +145,7 @@ def slice_to_e57(
 @dataclass(frozen=True)
 class ProcessInputs:
     """What ``kinreg process`` reads: one or several runs (``trajectory`` and ``cloud`` are the
-    first, ``more_runs`` the others, in order; see :mod:`kinreg.runs`), static scans, reference planes."""
+    first, ``more_runs`` the others, in order; see :mod:`kinreg.run.runs`), static scans, reference planes."""
 
     trajectory: Path
     cloud: Path
@@ -204,7 +204,7 @@ def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False,
                           outputs: tuple[str, ...] = OUTPUT_FILES) -> RunCache:
     """Create the output folder and open its stage cache. A folder that already holds kinreg
     results (any of ``outputs``) or a stage cache is refused unless ``resume`` (re-use the cache)
-    or ``overwrite`` (start afresh: the cache is cleared); see :func:`kinreg.resume.open_run_cache`."""
+    or ``overwrite`` (start afresh: the cache is cleared); see :func:`kinreg.run.output_folder.open_run_cache`."""
     run = open_run_cache(out_dir, outputs, overwrite=overwrite, resume=resume)
     check_writable_target(out_dir / "stations.csv", overwrite=True)
     return run
@@ -302,7 +302,7 @@ def detect_static_planes(path: Path, first_id: int, config: PlanesConfig, progre
 def link_stations_cached(stations: list[Station], planes: list[tuple[Plane, ...]], config: KinregConfig,
                          static: StaticConfig | None, progress: Progress, executor: ExecutorContext,
                          run: RunCache) -> list[Link]:
-    """:func:`~kinreg.network.link_stations` through the stage cache, keyed by the stations and
+    """:func:`~kinreg.estimate.network.link_stations` through the stage cache, keyed by the stations and
     planes themselves (so also by anything that moved them, e.g. ``[initial_transform]``) and
     ``[matching]``, ``[drift]``, ``[pairwise]``, ``[static]``."""
     key = run.key("link", *content_parts(stations, planes), config.matching, config.drift, config.pairwise, static)
@@ -405,7 +405,7 @@ def adjust_network(
 def take_out_jumps(
     stations: list[Station], planes: list[tuple[Plane, ...]], trajectory: Trajectory, config: DiscontinuityConfig,
 ) -> tuple[list[Station], list[tuple[Plane, ...]], list[TrajectoryJump]]:
-    """Find jumps in the trajectory (:func:`~kinreg.discontinuity.detect_jumps`) and take them out
+    """Find jumps in the trajectory (:func:`~kinreg.estimate.jumps.detect_jumps`) and take them out
     of the quasi-static stations' initial poses, so that the trajectory links and the pairwise
     priors no longer carry them. A scan's points are in its own frame whatever the trajectory
     did, except where its window contains a jump: those points were georeferenced on both sides
@@ -468,7 +468,7 @@ def process(
     Per-scan and per-pair work runs on ``workers`` local processes (``None``: every core; 1: in
     this process) or on the Dask cluster at ``scheduler``; results do not depend on either.
 
-    Each stage keeps its results in the output folder's stage cache (:mod:`kinreg.resume`). A
+    Each stage keeps its results in the output folder's stage cache (:mod:`kinreg.run.output_folder`). A
     folder that holds results or a cache is refused, unless ``resume`` (re-use the cache: only
     stages whose inputs changed are done again, and the outputs are rewritten) or ``overwrite``
     (start afresh). A run killed at any point and resumed gives the same outputs as one that ran
@@ -487,7 +487,7 @@ def process(
         timings[stage] = now - clock
         clock = now
 
-    runs = inputs.runs  # each run is read and sliced on its own (kinreg.runs)
+    runs = inputs.runs  # each run is read and sliced on its own (kinreg.run.runs)
     outputs = output_files(out, OUTPUT_FILES, len(runs))
     run = prepare_output_folder(out, overwrite, resume, outputs)
     references = read_reference_planes(inputs.reference) if inputs.reference is not None else None

@@ -7,7 +7,7 @@ run is read and sliced on its own; its quasi-static stations join one network, n
 stations of the runs before it. The trajectory ties only consecutive stations of the same run;
 stations of two runs are linked through identical planes where they are close
 (``[matching] radius_m``), with a loose prior (``[pairwise] cross_run_prior_sigma_*``), like loop
-closures (:mod:`kinreg.network`).
+closures (:mod:`kinreg.estimate.network`).
 
 Names, with one run exactly as without this module: stations ``qs_00012`` and outputs
 ``corrected.laz``, ``trajectory_corrected.txt``. With several runs, run k (1-based) names its
@@ -28,15 +28,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from kinreg.correction import DriftCorrection
+from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose
-from kinreg.slicing import SlicingSummary
+from kinreg.run.spill import SlicingSummary
 from kinreg.types import Plane, Scan, ScanKind, Trajectory
 
 if TYPE_CHECKING:
-    from kinreg.discontinuity import TrajectoryJump
-    from kinreg.network import Station
-    from kinreg.resume import CachedSlices
+    from kinreg.estimate.jumps import TrajectoryJump
+    from kinreg.estimate.network import Station
+    from kinreg.run.output_folder import CachedSlices
     from kinreg.types import BlockResult
 
 # A per-run output of an earlier run in the output folder (or its temporary file).

@@ -28,8 +28,8 @@ import numpy as np
 from scipy import stats
 
 from kinreg.config import DriftConfig, PairwiseConfig
+from kinreg.estimate.matching import count_directions
 from kinreg.geometry import FloatArray, Pose, skew
-from kinreg.matching import count_directions
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch
 
 log = logging.getLogger(__name__)

@@ -26,7 +26,7 @@ trajectory observations use relative poses only, which a common rigid transform 
 SLAM frame and adding ``T_ref_traj`` to the tie model as six more unknowns, would leave the
 outputs in the SLAM frame and need a second transformation of every output. The transform only
 has to be rough: the ties are solved exactly at their own poses (:func:`tie_observations`), and
-the drift correction reproduces a constant remainder of it exactly (:mod:`kinreg.correction`).
+the drift correction reproduces a constant remainder of it exactly (:mod:`kinreg.estimate.correction`).
 """
 
 from __future__ import annotations
@@ -40,9 +40,9 @@ import numpy as np
 
 from kinreg.config import ReferenceConfig
 from kinreg.errors import ConfigError
+from kinreg.estimate.network import Station
 from kinreg.geometry import FloatArray, Pose, skew, tangent_basis
 from kinreg.io.reference_planes import ReferencePlanes
-from kinreg.network import Station
 from kinreg.types import ObservationKind, Plane, RelativeObservation, ScanKind, Trajectory
 
 log = logging.getLogger(__name__)

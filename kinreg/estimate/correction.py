@@ -14,7 +14,7 @@ that is one rigid transform for all stations (e.g. what is left of a rough initi
 reproduced exactly between them, and a slowly turning one carries no lever arm to the sway and
 the turns of the path between stations (a tenth of a degree over a metre is 2 mm).
 
-Jumps of the trajectory (:mod:`kinreg.discontinuity`) are taken out first: a point or pose after
+Jumps of the trajectory (:mod:`kinreg.estimate.jumps`) are taken out first: a point or pose after
 jumps ``S_1 ... S_k`` is mapped by ``S_1^-1 ... S_k^-1`` (a point inside a jump's sample interval,
 which the SLAM output interpolated across the step, by the matching fraction of it), and the
 smooth correction then works on the stations' poses without the jumps.
@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import CubicSpline
 
-from kinreg.discontinuity import TrajectoryJump, jump_arrays, jump_removal
 from kinreg.errors import CloudError
+from kinreg.estimate.jumps import TrajectoryJump, jump_arrays, jump_removal
 from kinreg.geometry import (
     FloatArray,
     Pose,

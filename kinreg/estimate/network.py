@@ -17,11 +17,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
-from kinreg.executor import ExecutorContext, in_process, parallel_map
+from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
+from kinreg.estimate.pairwise import adjust_pair
 from kinreg.geometry import Pose, quat_to_rotvec
-from kinreg.matching import candidate_pairs, coarse_translation, count_directions, match_planes
-from kinreg.pairwise import adjust_pair
 from kinreg.progress import NullProgress, Progress
+from kinreg.run.executor import ExecutorContext, in_process, parallel_map
 from kinreg.types import (
     BlockResult,
     Link,

@@ -1,7 +1,7 @@
 """Resumable ``kinreg process``: the output folder's stage cache and the rules around it.
 
 Every ``kinreg process`` run keeps its stage results in ``<out>/.kinreg-cache/`` (a
-:class:`~kinreg.cache.StageCache`: plain arrays and JSON, no pickle). A later run with
+:class:`~kinreg.run.stage_cache.StageCache`: plain arrays and JSON, no pickle). A later run with
 ``--resume`` looks each stage up under a key of its inputs and re-does only what changed:
 
 - ``slice``: the index of the quasi-static scans (windows, point counts, summary), keyed by the
@@ -26,7 +26,7 @@ Every ``kinreg process`` run keeps its stage results in ``<out>/.kinreg-cache/``
   correction; the slice key and the adjusted poses). One that is still current is kept, not
   written again; every other output is always rewritten.
 
-Several runs in one project (:mod:`kinreg.runs`) need no other keys: slicing and planes are keyed
+Several runs in one project (:mod:`kinreg.run.runs`) need no other keys: slicing and planes are keyed
 by each run's own files, the corrected cloud of each run by its own name and correction, and
 ``sequence.e57`` by the slicing keys of all runs. Each run keeps its own spill record
 (:func:`spill_record_name`), so that the spills of all runs live side by side.
@@ -52,21 +52,12 @@ from typing import Any
 
 import numpy as np
 
-from kinreg.cache import (
-    CacheEntry,
-    StageCache,
-    planes_from_arrays,
-    planes_to_arrays,
-    process_alive,
-    stations_from_arrays,
-    stations_to_arrays,
-)
 from kinreg.config import KinregConfig
 from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import Pose
 from kinreg.io.cloud import open_cloud
 from kinreg.progress import Progress
-from kinreg.slicing import (
+from kinreg.run.spill import (
     SPILL_COMPLETE,
     SPILL_PREFIX,
     QuasiStaticSequence,
@@ -74,6 +65,15 @@ from kinreg.slicing import (
     make_spill_folder,
     slice_quasi_static,
     summary_from_arrays,
+)
+from kinreg.run.stage_cache import (
+    CacheEntry,
+    StageCache,
+    planes_from_arrays,
+    planes_to_arrays,
+    process_alive,
+    stations_from_arrays,
+    stations_to_arrays,
 )
 from kinreg.types import Plane, Trajectory
 

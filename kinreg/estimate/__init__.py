@@ -1,0 +1,1 @@
+"""Pure estimation over in-memory types: no files, no processes."""

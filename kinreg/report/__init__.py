@@ -1,0 +1,1 @@
+"""Rendering of results: CSV tables, report.json, report.html."""

@@ -1,0 +1,1 @@
+"""Orchestration and side effects: the pipelines, the stage cache, spill files, workers."""
