@@ -25,12 +25,11 @@ REPO = Path(__file__).resolve().parents[1]
 def bench_links() -> dict:
     from kinreg.config import KinregConfig
     from kinreg.estimate.matching import candidate_pairs
-    from kinreg.estimate.network import link_stations
     from kinreg.io.cloud import open_cloud
     from kinreg.io.trajectory import read_trajectory
     from kinreg.progress import NullProgress
-    from kinreg.run.pipeline import detect_all_planes
     from kinreg.run.spill import slice_quasi_static
+    from kinreg.run.stages import detect_all_planes, link_stations
 
     cfg = KinregConfig()
     data = REPO / "sample_data"

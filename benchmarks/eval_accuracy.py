@@ -96,7 +96,7 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
 
     from kinreg.config import load_config
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.report.tables import rigid_fit
+    from kinreg.report.json import rigid_fit
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation import simulate_run, write_run
 

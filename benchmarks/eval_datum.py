@@ -78,7 +78,7 @@ def evaluate(name: str, work: Path) -> dict:
 
     from kinreg.config import KinregConfig
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.report.tables import rigid_fit
+    from kinreg.report.json import rigid_fit
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation import simulate_run, write_run
 

@@ -37,7 +37,7 @@ JUMP_M = 0.5
 
 def errors_after_rigid_fit(xyz: np.ndarray, truth: np.ndarray) -> dict:
     """RMS and max [mm] of the position errors after a rigid fit onto the truth."""
-    from kinreg.report.tables import rigid_fit
+    from kinreg.report.json import rigid_fit
 
     R, t = rigid_fit(xyz, truth)
     err = np.linalg.norm(xyz @ R.T + t - truth, axis=1) * 1000.0

@@ -82,7 +82,7 @@ class DriftConfig:
 
     sigma(dt) = sqrt(floor^2 + (rate * dt)^2), per axis. It weights the trajectory's own links
     between stations and the prior of every pairwise adjustment, and it sets the bias of a
-    quasi-static scan (drift inside its window, see ``kinreg.estimate.network.window_bias_sigmas``).
+    quasi-static scan (drift inside its window, see ``kinreg.estimate.drift.window_bias_covariance``).
     Defaults describe a handheld SLAM unit of the GeoSLAM class (a few mm over a 6 s window,
     1-3 cm over 100 m); set them from your scanner's specification.
 

@@ -377,3 +377,12 @@ def tangent_basis(normal: ArrayLike) -> FloatArray:
     u = np.cross(n, helper)
     u /= np.linalg.norm(u)
     return np.stack([u, np.cross(n, u)])
+
+
+def pose_sigmas(position_m: float, rotation_rad: float) -> FloatArray:
+    """Standard deviations ``(6,)`` of a pose in twist order: three positions [m], three rotations [rad].
+
+    >>> pose_sigmas(0.002, 0.001)
+    array([0.002, 0.002, 0.002, 0.001, 0.001, 0.001])
+    """
+    return np.array([position_m] * 3 + [rotation_rad] * 3, dtype=np.float64)

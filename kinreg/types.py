@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 from kinreg.errors import TrajectoryError
-from kinreg.geometry import FloatArray, Pose, interpolate_poses
+from kinreg.geometry import FloatArray, Pose, interpolate_poses, quat_to_matrix, rotvec_to_quat
 
 
 @dataclass(frozen=True, eq=False)
@@ -315,3 +316,108 @@ class BlockResult:
     def sigma_position_m(self) -> FloatArray:
         """Standard deviations (n, 3) of the station positions along the object axes."""
         return np.sqrt(np.maximum(np.diagonal(self.cov_position, axis1=1, axis2=2), 0.0))
+
+
+@dataclass(frozen=True, eq=False)
+class Station:
+    """A node of the network: a scan's id, kind, time (nan for static) and initial pose, and the
+    run (0-based index of the trajectory + cloud) a quasi-static station was sliced from."""
+
+    scan_id: int
+    name: str
+    kind: ScanKind
+    t_s: float
+    t_start_s: float
+    t_end_s: float
+    T_obj_scan: Pose
+    n_points: int
+    tau_s: float = float("nan")  # effective time offset of the scan's planes from t_s (window bias)
+    run: int = 0
+
+
+@dataclass(frozen=True)
+class SkippedWindow:
+    """A window that had too few points to become a scan."""
+
+    t_start_s: float
+    t_end_s: float
+    n_points: int
+
+
+@dataclass(frozen=True)
+class SlicingSummary:
+    """What slicing did, for reports."""
+
+    n_points_read: int
+    n_points_in_scans: int
+    n_points_outside_trajectory: int
+    n_points_in_skipped_windows: int
+    n_scans: int
+    skipped: tuple[SkippedWindow, ...]
+
+    @property
+    def share_outside(self) -> float:
+        return self.n_points_outside_trajectory / self.n_points_read if self.n_points_read else 0.0
+
+
+@dataclass(frozen=True)
+class Tie:
+    """Detected plane ``plane_id`` of station ``station`` is on reference plane ``reference``."""
+
+    station: int
+    plane_id: int
+    reference: int
+    explicit: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class TrajectoryJump:
+    """One jump: between samples ``index - 1`` and ``index`` the trajectory stepped by ``step``.
+
+    ``index`` is the first sample that carries the step, ``t_s`` its time (the end of the jump
+    interval), ``t_before_s`` the time of the sample before. The step is a rigid transformation of
+    the object frame, ``T_traj = step . T_continuous`` from ``index`` on, parametrised as a
+    rotation ``rotvec_rad`` (object frame, radians) about ``pivot_xyz`` (the position of sample
+    ``index - 1``) followed by ``translation_m`` (object frame, metres): ``translation_m`` is how
+    far the scanner itself was displaced, whatever the distance to the frame's origin (and UTM
+    offsets do not enter the parameters). Both are estimated, never zeroed: a component within the
+    noise is the noise of the estimate.
+
+    ``translation_sigmas`` / ``rotation_sigmas`` are the excesses in robust noise sigmas,
+    ``significance`` the largest factor by which an excess passed both its thresholds (floor and
+    ``k_sigma``; >= 1 for every reported jump). ``sigma_translation_m`` / ``sigma_rotation_rad``
+    are the noise scales (per axis, the largest of x, y, z) the step was judged against: the
+    robust scale of the excesses of pass 1 around the jump. Use them as the per-axis standard
+    deviation of the step (about right with white noise; conservative on smooth motion, where the
+    fit of pass 2 is more precise).
+    """
+
+    index: int
+    t_s: float
+    t_before_s: float
+    translation_m: FloatArray
+    rotvec_rad: FloatArray
+    pivot_xyz: FloatArray
+    translation_sigmas: float
+    rotation_sigmas: float
+    significance: float
+    sigma_translation_m: float
+    sigma_rotation_rad: float
+
+    @property
+    def step(self) -> Pose:
+        """The step ``S`` (``T_traj = S . T_continuous`` from ``index`` on) as a pose of the object
+        frame: ``x -> R (x - pivot) + pivot + translation``."""
+        q = rotvec_to_quat(self.rotvec_rad)
+        R = quat_to_matrix(q)
+        return Pose(q, self.pivot_xyz + self.translation_m - R @ self.pivot_xyz)
+
+    @property
+    def step_m(self) -> float:
+        """Length of the translation of the scanner (metres)."""
+        return float(np.linalg.norm(self.translation_m))
+
+    @property
+    def step_deg(self) -> float:
+        """Rotation angle of the step (degrees)."""
+        return math.degrees(float(np.linalg.norm(self.rotvec_rad)))

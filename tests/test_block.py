@@ -199,8 +199,8 @@ def test_drift_rates_measure_the_relative_motion_not_a_turned_walk():
     0.2 mm/s along x is measured as such."""
     from types import SimpleNamespace
 
-    from kinreg.estimate.network import DriftRates, Station, estimate_drift_rates
-    from kinreg.types import ScanKind
+    from kinreg.estimate.drift import DriftRates, estimate_drift_rates
+    from kinreg.types import ScanKind, Station
 
     n = 40
     t = 6.0 * np.arange(n)

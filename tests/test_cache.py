@@ -12,7 +12,6 @@ from planefixtures import pose, scan_planes
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, PlanesConfig, SlicingConfig, WindowMode
 from kinreg.estimate.matching import match_planes
-from kinreg.estimate.network import Station
 from kinreg.estimate.pairwise import adjust_pair
 from kinreg.geometry import Pose
 from kinreg.run.stage_cache import (
@@ -26,7 +25,7 @@ from kinreg.run.stage_cache import (
     windows_from_arrays,
     windows_to_arrays,
 )
-from kinreg.types import Link, LinkStatus, Plane, PlaneMatch, ScanKind, ScanWindow
+from kinreg.types import Link, LinkStatus, Plane, PlaneMatch, ScanKind, ScanWindow, Station
 
 
 def same(a, b) -> bool:

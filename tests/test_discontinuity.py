@@ -12,7 +12,6 @@ from conftest import SAMPLE_DATA, make_trajectory
 from kinreg.errors import ConfigError
 from kinreg.estimate.jumps import (
     DiscontinuityConfig,
-    TrajectoryJump,
     detect_jumps,
     jumps_between,
     relative_pose_without_step,
@@ -31,7 +30,7 @@ from kinreg.simulation import (
     make_drift,
     make_walk,
 )
-from kinreg.types import Trajectory
+from kinreg.types import Trajectory, TrajectoryJump
 
 UTM = np.array([500000.0, 5400000.0, 300.0])
 

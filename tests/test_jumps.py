@@ -15,7 +15,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.jumps import detect_jumps, remove_jumps
 from kinreg.geometry import Pose
 from kinreg.io.trajectory import read_trajectory, write_trajectory_geoslam
-from kinreg.report.tables import rigid_fit
+from kinreg.report.json import rigid_fit
 from kinreg.run.pipeline import ProcessInputs, process
 from kinreg.types import Trajectory
 

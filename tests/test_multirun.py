@@ -21,14 +21,15 @@ from conftest import SAMPLE_DATA
 from kinreg_cli.main import main
 
 from kinreg.config import DriftConfig, KinregConfig, MatchingConfig
-from kinreg.estimate.network import DriftRates, Station, block_observations, station_pairs
+from kinreg.estimate.drift import DriftRates
+from kinreg.estimate.network import block_observations, station_pairs
 from kinreg.geometry import Pose
 from kinreg.io.e57 import list_e57_scans
 from kinreg.io.trajectory import read_trajectory
-from kinreg.report.tables import rigid_fit
+from kinreg.report.json import rigid_fit
 from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
 from kinreg.simulation import config_from_dict, simulate_run, write_run
-from kinreg.types import ObservationKind, ScanKind
+from kinreg.types import ObservationKind, ScanKind, Station
 
 # (seed, start after run 1 [s], offset of the run's frame [m])
 RUNS = ((11, 0.0, (0.0, 0.0, 0.0)), (12, 3600.0, (0.03, -0.02, 0.0)))

@@ -4,8 +4,9 @@ from planefixtures import ROOM, pose, scan_planes
 from scipy import stats
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
+from kinreg.estimate.drift import drift_sigmas
 from kinreg.estimate.matching import candidate_pairs, match_planes
-from kinreg.estimate.pairwise import adjust_pair, drift_sigmas
+from kinreg.estimate.pairwise import adjust_pair
 from kinreg.geometry import Pose
 from kinreg.types import LinkStatus, PlaneMatch
 
@@ -169,7 +170,7 @@ def test_repeated_and_looped_matches_do_not_break_the_adjustment():
 def test_window_deformation_adds_the_drift_over_each_planes_time_offset():
     import dataclasses
 
-    from kinreg.estimate.network import DriftRates, with_window_deformation
+    from kinreg.estimate.drift import DriftRates, with_window_deformation
 
     rng = np.random.default_rng(3)
     T = pose([0.0, 0.0, 0.3], [1.0, 2.0, 0.0])

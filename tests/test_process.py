@@ -10,7 +10,8 @@ from kinreg_cli.main import main
 
 from kinreg.io.e57 import list_e57_scans
 from kinreg.io.trajectory import read_trajectory
-from kinreg.report.tables import STATIONS_HEADER, rigid_fit
+from kinreg.report.json import rigid_fit
+from kinreg.report.tables import STATIONS_HEADER
 from kinreg.simulation import SimulationConfig, simulate_run, write_run
 
 

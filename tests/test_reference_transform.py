@@ -15,10 +15,11 @@ from kinreg_cli.main import main
 
 from kinreg.calibration.model import SystemCalibration, assign_points_to_planes
 from kinreg.errors import ConfigError
-from kinreg.estimate.correction import DriftCorrection, write_corrected_las
+from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.io.reference_planes import parse_reference_planes, read_reference_planes, rotation_from_degrees
 from kinreg.io.trajectory import read_trajectory, write_trajectory_geoslam
+from kinreg.run.corrected_cloud import write_corrected_las
 from kinreg.types import Trajectory
 
 PLANES = "plane_construction_accuracy_m = 0.05\n[[plane]]\nname = 'floor'\nnormal = [0, 0, 1]\nd_m = 0\n"

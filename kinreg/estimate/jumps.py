@@ -49,7 +49,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -60,6 +60,7 @@ from kinreg.geometry import (
     FloatArray,
     Pose,
     make_quat_continuous,
+    pose_sigmas,
     quat_conjugate,
     quat_multiply,
     quat_normalize,
@@ -67,7 +68,7 @@ from kinreg.geometry import (
     quat_to_rotvec,
     rotvec_to_quat,
 )
-from kinreg.types import Trajectory
+from kinreg.types import Trajectory, TrajectoryJump
 
 logger = logging.getLogger(__name__)
 
@@ -81,59 +82,6 @@ _MIN_SIGMA_RAD = 1e-5
 # stamps (rows missing), where the time clock may predict the step better than the index. Jittery
 # stamps reach 1.99 in the real GeoSLAM file (24 ms after 12 ms ones).
 _GAP_FACTOR = 2.5
-
-
-@dataclass(frozen=True, eq=False)
-class TrajectoryJump:
-    """One jump: between samples ``index - 1`` and ``index`` the trajectory stepped by ``step``.
-
-    ``index`` is the first sample that carries the step, ``t_s`` its time (the end of the jump
-    interval), ``t_before_s`` the time of the sample before. The step is a rigid transformation of
-    the object frame, ``T_traj = step . T_continuous`` from ``index`` on, parametrised as a
-    rotation ``rotvec_rad`` (object frame, radians) about ``pivot_xyz`` (the position of sample
-    ``index - 1``) followed by ``translation_m`` (object frame, metres): ``translation_m`` is how
-    far the scanner itself was displaced, whatever the distance to the frame's origin (and UTM
-    offsets do not enter the parameters). Both are estimated, never zeroed: a component within the
-    noise is the noise of the estimate.
-
-    ``translation_sigmas`` / ``rotation_sigmas`` are the excesses in robust noise sigmas,
-    ``significance`` the largest factor by which an excess passed both its thresholds (floor and
-    ``k_sigma``; >= 1 for every reported jump). ``sigma_translation_m`` / ``sigma_rotation_rad``
-    are the noise scales (per axis, the largest of x, y, z) the step was judged against: the
-    robust scale of the excesses of pass 1 around the jump. Use them as the per-axis standard
-    deviation of the step (about right with white noise; conservative on smooth motion, where the
-    fit of pass 2 is more precise).
-    """
-
-    index: int
-    t_s: float
-    t_before_s: float
-    translation_m: FloatArray
-    rotvec_rad: FloatArray
-    pivot_xyz: FloatArray
-    translation_sigmas: float
-    rotation_sigmas: float
-    significance: float
-    sigma_translation_m: float
-    sigma_rotation_rad: float
-
-    @property
-    def step(self) -> Pose:
-        """The step ``S`` (``T_traj = S . T_continuous`` from ``index`` on) as a pose of the object
-        frame: ``x -> R (x - pivot) + pivot + translation``."""
-        q = rotvec_to_quat(self.rotvec_rad)
-        R = quat_to_matrix(q)
-        return Pose(q, self.pivot_xyz + self.translation_m - R @ self.pivot_xyz)
-
-    @property
-    def step_m(self) -> float:
-        """Length of the translation of the scanner (metres)."""
-        return float(np.linalg.norm(self.translation_m))
-
-    @property
-    def step_deg(self) -> float:
-        """Rotation angle of the step (degrees)."""
-        return math.degrees(float(np.linalg.norm(self.rotvec_rad)))
 
 
 def detect_jumps(trajectory: Trajectory, config: DiscontinuityConfig | None = None) -> list[TrajectoryJump]:
@@ -386,7 +334,7 @@ def _local_sigma(e: FloatArray, block: int) -> FloatArray:
     sigma = _MAD_TO_SIGMA * np.median(np.abs(blocks - centre), axis=1)  # (nb, c)
     ext = np.concatenate([sigma[:1], sigma, sigma[-1:]])
     sigma = np.maximum(np.maximum(ext[:-2], ext[1:-1]), ext[2:])
-    floor = np.array([_MIN_SIGMA_M] * 3 + [_MIN_SIGMA_RAD] * 3)
+    floor = pose_sigmas(_MIN_SIGMA_M, _MIN_SIGMA_RAD)
     return np.maximum(np.repeat(sigma, size, axis=0)[:m], floor)
 
 

@@ -28,6 +28,7 @@ import numpy as np
 from scipy import stats
 
 from kinreg.config import DriftConfig, PairwiseConfig
+from kinreg.estimate.drift import drift_sigmas
 from kinreg.estimate.matching import count_directions
 from kinreg.geometry import FloatArray, Pose, skew
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch
@@ -36,14 +37,6 @@ log = logging.getLogger(__name__)
 
 # Eigenvalues of the plane-only normal matrix below this share of the largest count as zero.
 _RANK_TOLERANCE = 1e-9
-
-
-def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
-    """Prior standard deviations (tx, ty, tz [m], rx, ry, rz [rad]) of the trajectory's relative
-    pose between two times ``dt_s`` apart: ``sqrt(floor^2 + (rate * dt)^2)`` per axis."""
-    pos = np.hypot(config.sigma_pos_floor_m, config.sigma_pos_m_per_s * dt_s)
-    rot = np.radians(np.hypot(config.sigma_rot_floor_deg, config.sigma_rot_deg_per_s * dt_s))
-    return np.array([pos, pos, pos, rot, rot, rot])
 
 
 class _Design:

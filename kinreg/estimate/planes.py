@@ -65,7 +65,7 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
 from kinreg.config import PlanesConfig
-from kinreg.geometry import FloatArray
+from kinreg.geometry import FloatArray, tangent_basis
 from kinreg.types import Plane, Scan
 
 logger = logging.getLogger(__name__)
@@ -424,19 +424,12 @@ def _same_plane(normals: FloatArray, offsets: FloatArray, n: FloatArray, d: floa
 def _dense_support(points: FloatArray, normal: FloatArray, cell_m: float, filled: float) -> int:
     """How many of a plane's (downsampled) inliers lie in cells of a grid in the plane that hold
     at least ``filled`` of them (see ``_FILLED_CELL_SHARE``)."""
-    st = points @ _in_plane_basis(normal).T
+    st = points @ tangent_basis(normal).T
     ij = np.floor(st / cell_m).astype(np.int64)
     ij -= ij.min(axis=0)
     _, counts = np.unique(ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1], return_counts=True)
     return int(counts[counts >= filled].sum())
 
-
-def _in_plane_basis(normal: FloatArray) -> FloatArray:
-    """Any two unit vectors (2, 3) orthogonal to ``normal`` and to each other."""
-    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
-    u = np.cross(normal, helper)
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(normal, u)])
 
 
 # --------------------------------------------------------------------------- full resolution
@@ -517,7 +510,7 @@ def _split_patches(points: FloatArray, normal: FloatArray, config: PlanesConfig)
     Cells with fewer than ``patch_min_cell_points`` points neither join nor connect patches.
     Patches with fewer than ``min_points`` points are left out; ordered by size, largest first.
     """
-    st = points @ _in_plane_basis(normal).T  # any in-plane basis will do for the grid
+    st = points @ tangent_basis(normal).T  # any in-plane basis will do for the grid
     st -= st.min(axis=0)
     cell_m = config.patch_cell_m
     extent = st.max(axis=0)

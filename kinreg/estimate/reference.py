@@ -33,32 +33,21 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from kinreg.config import ReferenceConfig
 from kinreg.errors import ConfigError
-from kinreg.estimate.network import Station
 from kinreg.geometry import FloatArray, Pose, skew, tangent_basis
 from kinreg.io.reference_planes import ReferencePlanes
-from kinreg.types import ObservationKind, Plane, RelativeObservation, ScanKind, Trajectory
+from kinreg.types import ObservationKind, Plane, RelativeObservation, ScanKind, Station, Tie, Trajectory
 
 log = logging.getLogger(__name__)
 
 # Gauss-Newton steps of a tie's pose onto its conditions (converges in 3-4 from a rough start).
 _TIE_ITERATIONS = 8
-
-
-@dataclass(frozen=True)
-class Tie:
-    """Detected plane ``plane_id`` of station ``station`` is on reference plane ``reference``."""
-
-    station: int
-    plane_id: int
-    reference: int
-    explicit: bool = False
 
 
 def to_reference_frame(stations: Sequence[Station], trajectory: Trajectory,

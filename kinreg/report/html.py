@@ -7,7 +7,7 @@ them (position sigma RMS/max, gaps before/after mean/max), five kinds of plot, t
 and the resolved configuration.
 
 The input may be the cleaned JSON (NaN written as ``null``) or the dictionary straight from
-:func:`kinreg.report.tables.build_report` (numpy scalars and arrays, NaN floats); any key may be missing.
+:func:`kinreg.report.json.build_report` (numpy scalars and arrays, NaN floats); any key may be missing.
 
 Bump :data:`REPORT_HTML_VERSION` when the page's layout or content changes in a way a reader of
 old reports should know about.
@@ -850,7 +850,7 @@ def _plots(report: dict[str, Any]) -> str:
 def render_html(report: dict[str, Any]) -> str:
     """One self-contained HTML page (inline CSS and SVG, no network) for a ``report.json`` dict.
 
-    ``report`` is the dictionary of :func:`kinreg.report.tables.build_report` or its JSON; missing keys
+    ``report`` is the dictionary of :func:`kinreg.report.json.build_report` or its JSON; missing keys
     and NaN/None values are shown as a dash or an empty plot, never raised. Returns the page text.
     """
     report = _plain(report) if isinstance(report, dict) else {}

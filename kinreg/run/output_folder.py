@@ -61,7 +61,6 @@ from kinreg.run.spill import (
     SPILL_COMPLETE,
     SPILL_PREFIX,
     QuasiStaticSequence,
-    SlicingSummary,
     make_spill_folder,
     slice_quasi_static,
     summary_from_arrays,
@@ -75,7 +74,7 @@ from kinreg.run.stage_cache import (
     stations_from_arrays,
     stations_to_arrays,
 )
-from kinreg.types import Plane, Trajectory
+from kinreg.types import Plane, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
 

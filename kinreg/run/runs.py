@@ -30,14 +30,11 @@ import numpy as np
 
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose
-from kinreg.run.spill import SlicingSummary
-from kinreg.types import Plane, Scan, ScanKind, Trajectory
+from kinreg.types import Plane, Scan, ScanKind, SlicingSummary, Trajectory
 
 if TYPE_CHECKING:
-    from kinreg.estimate.jumps import TrajectoryJump
-    from kinreg.estimate.network import Station
     from kinreg.run.output_folder import CachedSlices
-    from kinreg.types import BlockResult
+    from kinreg.types import BlockResult, Station, TrajectoryJump
 
 # A per-run output of an earlier run in the output folder (or its temporary file).
 _RUN_OUTPUT = re.compile(r"\.?(?:trajectory_)?corrected_r(\d+)\.")
@@ -130,8 +127,8 @@ def adjusted_scans(sliced: Sequence[CachedSlices], poses: Pose) -> Iterator[Scan
 # --------------------------------------------------------------------------- report.json
 
 
-def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
-                  sliced: Sequence[CachedSlices]) -> dict[str, Any]:
+def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory], sliced: Sequence[CachedSlices],
+                  static: Path | None = None, reference: Path | None = None) -> dict[str, Any]:
     """``report.json`` ``inputs``: ``runs`` lists every run (its files, counts and output names).
     The keys of schema 1 keep their meaning: ``trajectory`` and ``cloud`` are the run's files
     (``null`` with several runs: see ``runs``), the counts are totals over the runs."""
@@ -150,6 +147,8 @@ def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
         "cloud": listed[0]["cloud"] if n_runs == 1 else None,
         **{key: sum(r[key] for r in listed) for key in totals},
         "runs": listed,
+        "static": None if static is None else str(static),
+        "reference": None if reference is None else str(reference),
     }
 
 

@@ -26,7 +26,6 @@ from bisect import bisect_left, bisect_right
 from collections import OrderedDict
 from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
@@ -38,7 +37,7 @@ from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
 from kinreg.progress import NullProgress, Progress
 from kinreg.run.stage_cache import windows_from_arrays, windows_to_arrays
-from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, Trajectory
+from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, SkippedWindow, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -63,31 +62,6 @@ _BLOCK_POINTS = 1 << 15
 
 SPILL_PREFIX = "kinreg-slices-"  # name prefix of every spill folder
 SPILL_COMPLETE = ".complete"  # written into a spill folder after its last point
-
-
-@dataclass(frozen=True)
-class SkippedWindow:
-    """A window that had too few points to become a scan."""
-
-    t_start_s: float
-    t_end_s: float
-    n_points: int
-
-
-@dataclass(frozen=True)
-class SlicingSummary:
-    """What slicing did, for reports."""
-
-    n_points_read: int
-    n_points_in_scans: int
-    n_points_outside_trajectory: int
-    n_points_in_skipped_windows: int
-    n_scans: int
-    skipped: tuple[SkippedWindow, ...]
-
-    @property
-    def share_outside(self) -> float:
-        return self.n_points_outside_trajectory / self.n_points_read if self.n_points_read else 0.0
 
 
 def unit_edges(trajectory: Trajectory, config: SlicingConfig) -> FloatArray:

@@ -406,7 +406,7 @@ def stations_to_arrays(stations: Sequence[Any]) -> Arrays:
 
 def stations_from_arrays(a: Mapping[str, np.ndarray]) -> list[Any]:
     """Inverse of :func:`stations_to_arrays`."""
-    from kinreg.estimate.network import Station  # network imports the stages; keep this module light
+    from kinreg.types import Station
 
     t = a["times_s"]
     runs = a["run"] if "run" in a else np.zeros(len(a["scan_id"]), dtype=np.int64)

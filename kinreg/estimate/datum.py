@@ -1,0 +1,151 @@
+"""The datum of the block adjustment and the network it is adjusted in: static scans (fixed or
+observed), reference planes (tie planes), or else the first station (METHOD.md section 2, steps 7-9);
+and trajectory jumps taken out of the stations before they are linked."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+
+import numpy as np
+
+from kinreg.config import BlockConfig, Disconnected, DiscontinuityConfig, KinregConfig, StaticConfig, StaticDatum
+from kinreg.errors import ConfigError, EstimationError
+from kinreg.estimate.block import adjust_block, loose_parts
+from kinreg.estimate.drift import DriftRates
+from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
+from kinreg.estimate.network import Datum, Network, block_observations
+from kinreg.estimate.reference import associate, tie_observations
+from kinreg.geometry import Pose, pose_sigmas
+from kinreg.io.reference_planes import ReferencePlanes
+from kinreg.progress import Progress
+from kinreg.types import (
+    BlockResult,
+    Link,
+    ObservationKind,
+    Plane,
+    RelativeObservation,
+    ScanKind,
+    Station,
+    Tie,
+    Trajectory,
+    TrajectoryJump,
+)
+
+log = logging.getLogger(__name__)
+
+
+def take_out_jumps(
+    stations: list[Station], planes: list[tuple[Plane, ...]], trajectory: Trajectory, config: DiscontinuityConfig,
+) -> tuple[list[Station], list[tuple[Plane, ...]], list[TrajectoryJump]]:
+    """Find jumps in the trajectory (:func:`~kinreg.estimate.jumps.detect_jumps`) and take them out
+    of the quasi-static stations' initial poses, so that the trajectory links and the pairwise
+    priors no longer carry them. A scan's points are in its own frame whatever the trajectory
+    did, except where its window contains a jump: those points were georeferenced on both sides
+    of the step, so that scan keeps only its trajectory links (its planes are dropped). The
+    corrected cloud and trajectory take the jumps out by time (:class:`DriftCorrection`)."""
+    if not config.detect:
+        return stations, planes, []
+    jumps = detect_jumps(trajectory, config)
+    if not jumps:
+        return stations, planes, []
+    intervals, steps = jump_arrays(jumps)
+    times = np.array([s.t_s for s in stations])
+    quasi = np.flatnonzero([s.kind is ScanKind.QUASI_STATIC for s in stations])
+    removal = jump_removal(intervals, steps, times[quasi])
+    stations, planes = list(stations), list(planes)
+    for n, k in enumerate(quasi):
+        s = stations[k]
+        stations[k] = dataclasses.replace(s, T_obj_scan=removal[n].compose(s.T_obj_scan))
+        inside = [j.t_s for j in jumps if s.t_start_s < j.t_s and j.t_before_s < s.t_end_s]
+        if inside:
+            log.warning("scan %s contains the trajectory jump at %.2f s: not linked by planes", s.name, inside[0])
+            planes[k] = ()
+    for j in jumps:
+        log.warning("the trajectory jumps by %.3f m and %.2f deg at %.3f s (row %d): taken out "
+                    "(set [jumps] detect = false to keep it)", j.step_m, j.step_deg, j.t_s, j.index)
+    return stations, planes, jumps
+
+
+def _axis_name(v: np.ndarray) -> str:
+    k = int(np.argmax(np.abs(v)))
+    return "xyz"[k] if abs(v[k]) > 0.99 else "(" + ", ".join(f"{c:.2f}" for c in v) + ")"
+
+
+def _check_reference_datum(ties: list[Tie], references: ReferencePlanes) -> None:
+    """The tied reference planes must fix all six datum directions: normals spanning three
+    directions fix the translations (and then the rotations too)."""
+    normals = references.normals[sorted({t.reference for t in ties})]
+    _, sing, Vt = np.linalg.svd(normals)
+    free = [Vt[k] for k in range(3) if k >= len(sing) or sing[k] < 0.1]
+    if free:
+        directions = " and ".join(f"translation along {_axis_name(v)}" for v in free)
+        if len(free) == 2:
+            directions += f", rotation about {_axis_name(normals[0])}"
+        raise ConfigError(f"the tied reference planes do not fix the datum: {directions} stay free; add reference "
+                          "planes in that direction, [[link]] entries, or static scans", references.source)
+
+
+def build_network(
+    stations: Sequence[Station],
+    planes: Sequence[tuple[Plane, ...]],
+    links: Sequence[Link],
+    references: ReferencePlanes | None,
+    static: StaticConfig | None,
+    config: KinregConfig,
+) -> Network:
+    """The network the block adjusts, with its datum: static scans (fixed, or observed with
+    ``[static] sigma_*``), reference planes (a tie plane per detected plane on one), or else the
+    first station. A part of the network that no link ties to the datum is refused, or (``[block]
+    disconnected = "fix_each"``) held on its own first station. Raises :class:`ConfigError` when
+    the reference planes tie nothing or leave a datum direction free, :class:`EstimationError`
+    when the network falls apart."""
+    poses_initial = Pose.stack([s.T_obj_scan for s in stations])
+    is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
+    fixed = np.zeros(len(stations), dtype=bool)
+    datum_obs: list[RelativeObservation] = []
+    ties: list[Tie] = []
+    datum = []
+    if static is not None and is_static.any():
+        if static.datum is StaticDatum.FIXED:
+            fixed |= is_static
+            datum.append("static scans fixed")
+        else:
+            sigma = pose_sigmas(static.sigma_mm / 1000.0, np.radians(static.sigma_mdeg / 1000.0))
+            datum_obs += [RelativeObservation(ObservationKind.STATION, int(k), -1, stations[int(k)].T_obj_scan,
+                                              np.diag(1.0 / sigma**2), 6) for k in np.flatnonzero(is_static)]
+            datum.append("static scans observed")
+    if references is not None:
+        ties = associate([s.name for s in stations], poses_initial, planes, references, config.reference)
+        if not ties:
+            raise ConfigError("no detected plane could be tied to a reference plane (is the trajectory in the "
+                              "building's frame? give [initial_transform] or [[link]] entries otherwise)",
+                              references.source)
+        datum_obs += tie_observations(ties, poses_initial, planes, references, config.reference)
+        datum.append(f"reference planes ({len(ties)} tie planes)")
+    if not datum:
+        fixed[0] = True
+        datum.append("first station")
+    if references is not None and not fixed.any() and static is None:
+        _check_reference_datum(ties, references)
+    parts = loose_parts(block_observations(stations, links, DriftRates.from_config(config.drift)) + datum_obs,
+                        fixed, len(stations))
+    if parts:
+        names = ", ".join(f"{stations[p[0]].name}..{stations[p[-1]].name}" for p in parts[:5])
+        if config.block.disconnected is Disconnected.STOP:
+            raise EstimationError(
+                f"the network falls apart: {len(parts)} part(s) are not linked to the datum ({names}); set "
+                '[block] disconnected = "fix_each" to adjust each part in its own datum')
+        log.warning("%d part(s) not linked to the datum (%s): each adjusted with its first station fixed",
+                    len(parts), names)
+        for p in parts:
+            fixed[p[0]] = True
+        datum.append(f"{len(parts)} disconnected part(s) each on its first station")
+    return Network(tuple(stations), tuple(links), Datum(fixed, tuple(datum_obs), "; ".join(datum), tuple(ties)))
+
+
+def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress) -> BlockResult:
+    """The block adjustment of ``network`` (:func:`~kinreg.estimate.block.adjust_block`), its
+    trajectory links weighted by ``rates``."""
+    return adjust_block(network.initial_poses, network.observations(rates), network.datum.fixed, config, progress)

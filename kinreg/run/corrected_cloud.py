@@ -1,0 +1,84 @@
+"""``corrected.laz``: the input cloud streamed through a drift correction, written chunk by chunk."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from kinreg.errors import CloudError
+from kinreg.estimate.correction import DriftCorrection
+from kinreg.geometry import Pose
+from kinreg.io.atomic import atomic_path
+from kinreg.progress import NullProgress, Progress
+
+
+def write_corrected_las(
+    source: str | Path,
+    target: str | Path,
+    correction: DriftCorrection,
+    chunk_points: int = 2_000_000,
+    overwrite: bool = False,
+    progress: Progress | None = None,
+    T_obj_cloud: Pose | None = None,
+) -> int:
+    """Stream a LAS/LAZ file, correct every point by its time, write it with the same header,
+    point format, order and attributes (only X, Y, Z change). Returns the number of points.
+
+    ``T_obj_cloud`` maps the file's coordinates into the frame of ``correction`` (its stations and
+    trajectory) before the correction, when the two differ (``[initial_transform]`` of the
+    reference planes); the output's header offsets are then mapped with it, so that the integer
+    coordinates keep their range and the scale its resolution.
+    """
+    import copy
+
+    import laspy
+
+    from kinreg.io.las import _DECODE_ERRORS, _laz_backend
+
+    progress = progress or NullProgress()
+    source = Path(source)
+    n = 0
+    with atomic_path(target, overwrite=overwrite) as tmp:
+        try:
+            reader = laspy.open(source, laz_backend=_laz_backend())
+        except _DECODE_ERRORS as e:
+            raise CloudError(f"cannot open as LAS/LAZ: {e}", source) from None
+        with reader:
+            header = reader.header
+            if T_obj_cloud is not None:
+                header = copy.deepcopy(header)
+                header.offsets = np.round(T_obj_cloud.apply(np.asarray(header.offsets, dtype=np.float64)), 3)
+            compress = Path(target).suffix.lower() == ".laz"
+            progress.start("write cloud", total=header.point_count, unit="points")
+            with laspy.open(tmp, mode="w", header=header, do_compress=compress,
+                            laz_backend=_laz_backend() if compress else None) as writer:
+                for points in _chunks(reader, chunk_points, source):
+                    xyz = np.column_stack([points.x, points.y, points.z]).astype(np.float64)
+                    if T_obj_cloud is not None:
+                        xyz = T_obj_cloud.apply(xyz)
+                        points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
+                    fixed = correction.apply_to_points(xyz, np.asarray(points.gps_time, dtype=np.float64))
+                    points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
+                    writer.write_points(points)
+                    n += len(points)
+                    progress.advance(len(points))
+            progress.finish()
+    return n
+
+
+def _chunks(reader, chunk_points: int, source: Path) -> Iterator:
+    from kinreg.io.las import _DECODE_ERRORS
+
+    iterator = reader.chunk_iterator(chunk_points)
+    while True:
+        try:
+            points = next(iterator)
+        except StopIteration:
+            return
+        except _DECODE_ERRORS as e:
+            raise CloudError(f"decoding failed (truncated or corrupted?): {e}", source) from None
+        if len(points) == 0:
+            return
+        yield points

@@ -1,0 +1,378 @@
+"""The stages of ``kinreg process`` with their side effects: on the executor's workers, through
+the output folder's stage cache (:mod:`kinreg.run.output_folder`), with progress."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from kinreg.config import (
+    DriftConfig,
+    InputConfig,
+    KinregConfig,
+    MatchingConfig,
+    PairwiseConfig,
+    PlanesConfig,
+    StaticConfig,
+)
+from kinreg.errors import ConfigError
+from kinreg.estimate.correction import DriftCorrection
+from kinreg.estimate.datum import adjust_network, take_out_jumps
+from kinreg.estimate.drift import (
+    DriftRates,
+    estimate_drift_rates,
+    plane_time_offsets,
+    rms_time_offset,
+    with_window_bias,
+    with_window_deformation,
+)
+from kinreg.estimate.network import Network, link_pair, station_pairs
+from kinreg.estimate.planes import detect_planes
+from kinreg.estimate.reference import to_reference_frame
+from kinreg.geometry import Pose
+from kinreg.io.reference_planes import ReferencePlanes
+from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
+from kinreg.progress import NullProgress, Progress
+from kinreg.run.corrected_cloud import write_corrected_las
+from kinreg.run.executor import ExecutorContext, in_process, parallel_map
+from kinreg.run.output_folder import (
+    CachedSlices,
+    RunCache,
+    content_parts,
+    dataclass_parts,
+    remove_outputs,
+    scan_planes_from_arrays,
+    scan_planes_to_arrays,
+)
+from kinreg.run.runs import RunInputs, adjusted_scans, label_run, run_output_names
+from kinreg.run.spill import QuasiStaticSequence
+from kinreg.run.stage_cache import links_from_arrays, links_to_arrays
+from kinreg.types import (
+    BlockResult,
+    Link,
+    LinkStatus,
+    Plane,
+    Scan,
+    ScanKind,
+    Station,
+    Trajectory,
+    TrajectoryJump,
+)
+
+log = logging.getLogger(__name__)
+
+
+def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[Station, tuple[Plane, ...]]:
+    """One scan's planes and its station (a top-level function: it runs on worker processes).
+    The task carries the sequence's small index (windows, spill paths), never the points."""
+    sequence, i, config = task
+    scan = sequence.read_scan(i)
+    found = detect_planes(scan, config)
+    tau = float("nan")
+    if scan.stamps_s is not None:
+        offsets = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
+        found = tuple(dataclasses.replace(p, t_offset_s=float(t)) if np.isfinite(t) else p
+                      for p, t in zip(found, offsets, strict=True))
+        tau = rms_time_offset(offsets)
+    station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
+                      scan.T_obj_scan, len(scan), tau)
+    return station, found
+
+
+def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progress: Progress,
+                      executor: ExecutorContext | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """Planes of every quasi-static scan, and the stations they belong to (on ``executor``; in this
+    process without one). The result does not depend on the number of workers."""
+    progress.start("planes", total=len(sequence), unit="scans")
+    tasks = ((sequence, i, config) for i in range(len(sequence)))
+    results = parallel_map(scan_planes, tasks, executor or in_process(), progress)
+    progress.finish()
+    return [r[0] for r in results], [r[1] for r in results]
+
+
+def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: Progress,
+                         executor: ExecutorContext, run: RunCache) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """:func:`detect_all_planes` through the stage cache: each scan is looked up under (slice
+    key, scan index, ``[planes]``); the others are detected and stored as each finishes, so that
+    an interrupted run keeps the scans it finished. The points are read only when a scan is missing."""
+    keys = [run.key("planes", slices.key, i, config) for i in range(len(slices))]
+    results: list[tuple[Station, tuple[Plane, ...]] | None] = []
+    for key in keys:
+        entry = run.load("planes", key)
+        results.append(None if entry is None else scan_planes_from_arrays(entry.arrays))
+    missing = [i for i, r in enumerate(results) if r is None]
+    run.count("planes", reused=len(keys) - len(missing), computed=len(missing))
+    if len(missing) < len(keys):
+        log.info("planes: %d of %d scans re-used from the stage cache", len(keys) - len(missing), len(keys))
+    sequence = slices.sequence() if missing else None  # points are read only for scans not in the cache
+
+    def keep(index: int, result: tuple[Station, tuple[Plane, ...]]) -> None:
+        run.store("planes", keys[missing[index]], scan_planes_to_arrays(*result))
+        results[missing[index]] = result
+
+    progress.start("planes", total=len(keys), unit="scans")
+    progress.advance(len(keys) - len(missing))
+    if sequence is not None:
+        parallel_map(scan_planes, ((sequence, i, config) for i in missing), executor, progress, on_result=keep)
+    progress.finish()
+    done = [r for r in results if r is not None]
+    return [r[0] for r in done], [r[1] for r in done]
+
+
+def detect_static_planes(path: Path, first_id: int, config: PlanesConfig, progress: Progress,
+                         run: RunCache | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+    """Planes of every static scan of a registered E57 (poses in the object frame required).
+    With ``run``, each scan is looked up in (and stored into) its stage cache."""
+    from kinreg.io.e57 import list_e57_scans, read_e57_scan
+
+    headers = list_e57_scans(path)
+    stations: list[Station] = []
+    planes: list[tuple[Plane, ...]] = []
+    progress.start("static planes", total=len(headers), unit="scans")
+    for k in range(len(headers)):
+        key = run.key("static-planes", path, k, first_id, config) if run is not None else ""
+        entry = run.load("static-planes", key) if run is not None else None
+        if entry is not None:
+            station, found = scan_planes_from_arrays(entry.arrays)
+        else:
+            scan = replace(read_e57_scan(path, k, require_pose=True), scan_id=first_id + k)
+            found = tuple(replace(p, scan_id=scan.scan_id) for p in detect_planes(scan, config))
+            nan = float("nan")
+            station = Station(scan.scan_id, scan.name or f"static_{k:03d}", ScanKind.STATIC, nan, nan, nan,
+                              scan.T_obj_scan, len(scan))
+        if run is not None:
+            if entry is None:
+                run.store("static-planes", key, scan_planes_to_arrays(station, found))
+            run.count("static planes", reused=int(entry is not None), computed=int(entry is None))
+        stations.append(station)
+        planes.append(found)
+        progress.advance(1)
+    progress.finish()
+    return stations, planes
+
+
+def link_stations_cached(stations: list[Station], planes: list[tuple[Plane, ...]], config: KinregConfig,
+                         static: StaticConfig | None, progress: Progress, executor: ExecutorContext,
+                         run: RunCache) -> list[Link]:
+    """:func:`~kinreg.estimate.network.link_stations` through the stage cache, keyed by the stations and
+    planes themselves (so also by anything that moved them, e.g. ``[initial_transform]``) and
+    ``[matching]``, ``[drift]``, ``[pairwise]``, ``[static]``."""
+    key = run.key("link", *content_parts(stations, planes), config.matching, config.drift, config.pairwise, static)
+    entry = run.load("link", key)
+    if entry is not None:
+        run.count("link", reused=1)
+        log.info("link: the pairwise links are re-used from the stage cache")
+        return links_from_arrays(entry.arrays)
+    links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
+                          executor)
+    run.store("link", key, links_to_arrays(links))
+    run.count("link", computed=1)
+    return links
+
+
+@dataclass(frozen=True, eq=False)
+class AdjustedNetwork:
+    network: Network  # the links the result rests on (linked again when the drift was faster)
+    result: BlockResult
+    rates: DriftRates
+
+
+def adjust_with_measured_drift(
+    network: Network,
+    planes: list[tuple[Plane, ...]],
+    static: StaticConfig | None,
+    config: KinregConfig,
+    progress: Progress,
+    executor: ExecutorContext | None = None,
+) -> AdjustedNetwork:
+    """The block adjustment of ``network``, twice: the first adjustment also measures the drift;
+    where it is faster than the prior, the pairs are linked again (on ``executor``), and the
+    network is adjusted again with the measured rates, so that the planes' window deformation and
+    the stretches carried by the trajectory alone get honest sigmas."""
+    prior_rates = DriftRates.from_config(config.drift)
+    result = adjust_network(network, prior_rates, config.block, progress)
+    rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
+    if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
+            rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
+        # The planes of a scan are deformed by the drift inside its window: faster than the prior,
+        # by more than their covariances say, so the pairs are linked again with the measured rates.
+        log.info("drift faster than the prior: linking again with the measured rates")
+        network = network.with_links(link_stations(network.stations, planes, config.matching, config.drift,
+                                                   config.pairwise, progress, static, executor, rates))
+    if rates.estimated:
+        # Second pass: the trajectory's links (and the scans' window bias) with the measured rates.
+        result = adjust_network(network, rates, config.block, progress)
+    return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)
+
+
+# Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.
+_PAIRS_PER_TASK = 64
+
+
+def _link_batch(task: tuple) -> list[Link | None]:
+    """A batch of pairs (a top-level function: it runs on worker processes)."""
+    pairs, stations, planes, configs = task
+    return [link_pair(i, j, stations[i], stations[j], planes[i], planes[j], *configs) for i, j in pairs]
+
+
+def link_stations(
+    stations: Sequence[Station],
+    planes: Sequence[tuple[Plane, ...]],
+    matching: MatchingConfig,
+    drift: DriftConfig,
+    pairwise: PairwiseConfig,
+    progress: Progress | None = None,
+    static: StaticConfig | None = None,
+    executor: ExecutorContext | None = None,
+    rates: DriftRates | None = None,
+) -> list[Link]:
+    """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
+    batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
+    with fewer than ``matching.min_matches`` plane matches are not linked. A pair with a static
+    station has no trajectory between them: its prior comes from ``static.prior_sigma_*``; nor has
+    a pair of two runs: its prior comes from ``pairwise.cross_run_prior_sigma_*``.
+    ``rates`` are the drift rates for the planes' window deformation (default: the prior's).
+    Returns the links in pair order, whatever the number of workers.
+    """
+    progress = progress or NullProgress()
+    pairs = station_pairs(stations, matching, static)
+    # Once per station, not once per pair: matching does not look at the covariances.
+    rates = rates or DriftRates.from_config(drift)
+    planes = [with_window_deformation(p, s.T_obj_scan, rates) for s, p in zip(stations, planes, strict=True)]
+    configs = (matching, drift, pairwise, static)
+    batches = [pairs[k:k + _PAIRS_PER_TASK] for k in range(0, len(pairs), _PAIRS_PER_TASK)]
+    progress.start("link", total=len(batches), unit="batches")
+
+    def task(batch: list[tuple[int, int]]) -> tuple:
+        # Each task gets only the stations and planes of its own pairs.
+        used = {k for pair in batch for k in pair}
+        return batch, {k: stations[k] for k in used}, {k: planes[k] for k in used}, configs
+
+    results = parallel_map(_link_batch, (task(b) for b in batches), executor or in_process(), progress)
+    progress.finish()
+    links = [link for batch in results for link in batch if link is not None]
+    n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
+    log.info("%d candidate pairs, %d links (%d rejected)", len(pairs), len(links), n_rejected)
+    return links
+
+
+def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
+    """The trajectory named in the inputs, read with the configured format and column mapping."""
+    fmt = None if config.trajectory_format == "auto" else config.trajectory_format
+    columns = parse_column_mapping(config.trajectory_columns) if config.trajectory_columns else None
+    return read_trajectory(path, fmt, columns)
+
+
+def read_run_trajectories(runs: Sequence[RunInputs], config: InputConfig) -> list[Trajectory]:
+    """Each run's trajectory; a run whose cloud cannot be written corrected is refused first."""
+    for r in runs:
+        if r.cloud.suffix.lower() not in (".las", ".laz"):
+            raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", r.cloud)
+    return [read_input_trajectory(r.trajectory, config) for r in runs]
+
+
+@dataclass(frozen=True, eq=False)
+class KinematicStations:
+    """The quasi-static stations of every run with their planes, in the frame of the reference
+    planes (``[initial_transform]``), labelled by run, jumps taken out; the trajectories moved
+    likewise, and each run's trajectory jumps."""
+
+    stations: list[Station]
+    planes: list[tuple[Plane, ...]]
+    trajectories: list[Trajectory]
+    jumps: list[list[TrajectoryJump]]
+
+
+def detect_run_planes(sliced: Sequence[CachedSlices], trajectories: Sequence[Trajectory],
+                      references: ReferencePlanes | None, config: KinregConfig, progress: Progress,
+                      executor: ExecutorContext, run: RunCache) -> KinematicStations:
+    """Planes and stations of every run (:func:`detect_planes_cached`), each run numbered after the
+    previous one, moved into the reference frame and with its trajectory jumps taken out."""
+    stations: list[Station] = []
+    planes: list[tuple[Plane, ...]] = []
+    moved, jumps = list(trajectories), []
+    for k, slices in enumerate(sliced):
+        run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run)
+        run_stations, moved[k] = to_reference_frame(run_stations, moved[k], references)  # [initial_transform]
+        run_stations, run_planes = label_run(run_stations, run_planes, k, len(stations), len(sliced))
+        run_stations, run_planes, run_jumps = take_out_jumps(run_stations, run_planes, moved[k], config.jumps)
+        stations, planes = stations + run_stations, planes + run_planes
+        jumps.append(run_jumps)
+    return KinematicStations(stations, planes, moved, jumps)
+
+
+@dataclass(frozen=True)
+class LargeOutputs:
+    """The keys of the large outputs (each corrected cloud, ``sequence.e57``) by what they are made
+    of, and which of them are still current in the folder (kept, not written again)."""
+
+    keys: dict[str, str]
+    current: frozenset[str]
+
+
+def plan_large_outputs(run: RunCache, out: Path, outputs: tuple[str, ...], runs: Sequence[RunInputs],
+                       sliced: Sequence[CachedSlices], corrections: Sequence[DriftCorrection], poses: Pose,
+                       config: KinregConfig, references: ReferencePlanes | None) -> LargeOutputs:
+    """Key the large outputs and remove every output of the folder that is not current (all but
+    the current large ones are written again)."""
+    T_obj_cloud = None if references is None else references.T_ref_traj
+    keys = {}
+    for k, (r, correction) in enumerate(zip(runs, corrections, strict=True)):
+        cloud_name = run_output_names(k, len(runs))[0]
+        keys[cloud_name] = run.key("output", cloud_name, r.cloud, config.input.chunk_points, T_obj_cloud,
+                                   *dataclass_parts(correction))
+    n_scans = sum(len(slices) for slices in sliced)
+    keys["sequence.e57"] = run.key("output", "sequence.e57", *(slices.key for slices in sliced),
+                                   poses[np.arange(n_scans)])
+    current = frozenset(name for name, key in keys.items() if run.output_is_current(name, key))
+    remove_outputs(out, tuple(name for name in outputs if name not in current))
+    return LargeOutputs(keys, current)
+
+
+def write_corrected_runs(out: Path, runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
+                         corrections: Sequence[DriftCorrection], plan: LargeOutputs, run: RunCache,
+                         config: KinregConfig, references: ReferencePlanes | None,
+                         progress: Progress) -> list[Trajectory]:
+    """Each run's corrected trajectory and (unless still current) corrected cloud; returns the
+    corrected trajectories."""
+    T_obj_cloud = None if references is None else references.T_ref_traj
+    corrected = [c.apply_to_trajectory(t) for c, t in zip(corrections, trajectories, strict=True)]
+    names = [run_output_names(k, len(runs)) for k in range(len(runs))]
+    for (_, trajectory_name), trajectory in zip(names, corrected, strict=True):
+        write_trajectory_geoslam(out / trajectory_name, trajectory, overwrite=True)
+    for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True):
+        if cloud_name not in plan.current:
+            write_corrected_las(r.cloud, out / cloud_name, correction, config.input.chunk_points,
+                                overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud)
+            run.record_output(cloud_name, plan.keys[cloud_name])
+        run.count("corrected cloud", reused=int(cloud_name in plan.current),
+                  computed=int(cloud_name not in plan.current))
+    return corrected
+
+
+def counted(scans: Iterator[Scan], progress: Progress, stage: str, total: int) -> Iterator[Scan]:
+    """``scans`` passed through, with progress per scan."""
+    progress.start(stage, total=total, unit="scans")
+    for scan in scans:
+        yield scan
+        progress.advance(1)
+    progress.finish()
+
+
+def write_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan: LargeOutputs, run: RunCache,
+                   progress: Progress) -> None:
+    """``sequence.e57``: the quasi-static scans of every run with their adjusted poses (unless still current)."""
+    from kinreg.io.e57 import write_e57_sequence
+
+    done = "sequence.e57" in plan.current
+    if not done:
+        n_scans = sum(len(slices) for slices in sliced)
+        write_e57_sequence(out / "sequence.e57", counted(adjusted_scans(sliced, poses), progress, "write E57", n_scans),
+                           overwrite=True)
+        run.record_output("sequence.e57", plan.keys["sequence.e57"])
+    run.count("sequence E57", reused=int(done), computed=int(not done))
