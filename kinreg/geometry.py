@@ -224,6 +224,10 @@ class Pose:
         object.__setattr__(self, "t_xyz", t)
 
     # constructors
+    def cache_key_parts(self) -> tuple[FloatArray, FloatArray]:
+        """What identifies the pose in a cache key (:mod:`kinreg.run.stage_cache`)."""
+        return self.quat_wxyz, self.t_xyz
+
     @classmethod
     def identity(cls, n: int | None = None) -> Pose:
         """The identity pose, or ``n`` of them."""

@@ -14,8 +14,7 @@ from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, PlanesCon
 from kinreg.estimate.matching import match_planes
 from kinreg.estimate.pairwise import adjust_pair
 from kinreg.geometry import Pose
-from kinreg.run.stage_cache import (
-    StageCache,
+from kinreg.run.codecs import (
     links_from_arrays,
     links_to_arrays,
     planes_from_arrays,
@@ -25,6 +24,7 @@ from kinreg.run.stage_cache import (
     windows_from_arrays,
     windows_to_arrays,
 )
+from kinreg.run.stage_cache import StageCache
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch, ScanKind, ScanWindow, Station
 
 
@@ -154,7 +154,7 @@ def test_a_store_interrupted_by_an_exception_leaves_no_entry(tmp_path: Path, mon
     with pytest.raises(KeyboardInterrupt):
         cache.store("planes", "abc", arrays)
     monkeypatch.undo()
-    assert cache.load("planes", "abc") is None and not cache.has("planes", "abc")
+    assert cache.load("planes", "abc") is None
     assert not [p for p in (tmp_path / "cache" / "planes").iterdir() if ".tmp-" in p.name]
 
     with pytest.raises(TypeError):
@@ -194,23 +194,12 @@ def test_pickled_arrays_are_never_loaded(tmp_path: Path):
     assert cache.load("planes", "abc") is None
 
 
-def test_build_directory_is_atomic(tmp_path: Path):
-    cache = StageCache(tmp_path / "cache")
-    with pytest.raises(RuntimeError), cache.build_directory("slice", "k1") as d:
-        (d / "unit_000000.bin").write_bytes(b"123")
-        raise RuntimeError
-    assert cache.directory("slice", "k1") is None
-    assert not list((tmp_path / "cache" / "slice").iterdir())
-    with cache.build_directory("slice", "k1") as d:
-        (d / "unit_000000.bin").write_bytes(b"123")
-    assert (cache.directory("slice", "k1") / "unit_000000.bin").read_bytes() == b"123"
-
-
 def test_prune_keeps_what_a_run_used_and_nothing_else(tmp_path: Path):
     cache = StageCache(tmp_path / "cache")
     for stage, key in (("planes", "a1"), ("planes", "b2"), ("link", "c3")):
         cache.store(stage, key, {"x": np.arange(3.0)})
     (tmp_path / "cache" / "planes" / "notes.txt").write_text("not an entry")
     assert cache.prune({("planes", "a1"), ("link", "zz")}) == 2
-    assert cache.has("planes", "a1") and not cache.has("planes", "b2") and not cache.has("link", "c3")
+    assert cache.load("planes", "a1") is not None
+    assert cache.load("planes", "b2") is None and cache.load("link", "c3") is None
     assert sorted(p.name for p in (tmp_path / "cache" / "planes").iterdir()) == ["a1.json", "a1.npz", "notes.txt"]

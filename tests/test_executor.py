@@ -14,8 +14,8 @@ from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
 from kinreg.errors import ConfigError
 from kinreg.estimate.matching import match_planes
 from kinreg.estimate.pairwise import adjust_pair
+from kinreg.run.codecs import links_to_arrays
 from kinreg.run.executor import THREAD_VARIABLES, ExecutorContext, make_executor, parallel_map
-from kinreg.run.stage_cache import links_to_arrays
 
 HAVE_DASK = importlib.util.find_spec("distributed") is not None
 

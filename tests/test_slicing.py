@@ -4,8 +4,9 @@ from conftest import write_synthetic_run
 
 from kinreg.config import SlicingConfig, WindowMode
 from kinreg.errors import InputError
+from kinreg.estimate.slicing import unit_edges
 from kinreg.io.cloud import open_cloud
-from kinreg.run.spill import slice_quasi_static, unit_edges
+from kinreg.run.spill import slice_quasi_static
 
 
 def slice_run(run, config, chunk_points=7_000, tmp_path=None):

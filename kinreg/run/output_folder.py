@@ -57,6 +57,7 @@ from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import Pose
 from kinreg.io.cloud import open_cloud
 from kinreg.progress import Progress
+from kinreg.run.codecs import planes_to_arrays, stations_to_arrays
 from kinreg.run.spill import (
     SPILL_COMPLETE,
     SPILL_PREFIX,
@@ -65,15 +66,7 @@ from kinreg.run.spill import (
     slice_quasi_static,
     summary_from_arrays,
 )
-from kinreg.run.stage_cache import (
-    CacheEntry,
-    StageCache,
-    planes_from_arrays,
-    planes_to_arrays,
-    process_alive,
-    stations_from_arrays,
-    stations_to_arrays,
-)
+from kinreg.run.stage_cache import CacheEntry, StageCache, process_alive
 from kinreg.types import Plane, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
@@ -368,20 +361,6 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
 
 
 # --------------------------------------------------------------------------- stage results as arrays
-
-
-def scan_planes_to_arrays(station: Any, planes: tuple[Plane, ...]) -> dict[str, np.ndarray]:
-    """One scan's station and planes as plain arrays (one ``planes`` cache entry)."""
-    return {**{f"station.{k}": v for k, v in stations_to_arrays([station]).items()},
-            **{f"planes.{k}": v for k, v in planes_to_arrays([planes]).items()}}
-
-
-def scan_planes_from_arrays(arrays: Mapping[str, np.ndarray]) -> tuple[Any, tuple[Plane, ...]]:
-    """Inverse of :func:`scan_planes_to_arrays`: (station, planes)."""
-    def part(prefix: str) -> dict[str, np.ndarray]:
-        return {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
-
-    return stations_from_arrays(part("station."))[0], planes_from_arrays(part("planes."))[0]
 
 
 def content_parts(stations: Sequence[Any], planes: Sequence[tuple[Plane, ...]]) -> list[Any]:

@@ -31,12 +31,13 @@ from typing import BinaryIO
 
 import numpy as np
 
-from kinreg.config import SlicingConfig, WindowMode
+from kinreg.config import SlicingConfig
 from kinreg.errors import ConfigError, InputError, OutputError
+from kinreg.estimate.slicing import choose_windows, unit_edges
 from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
 from kinreg.progress import NullProgress, Progress
-from kinreg.run.stage_cache import windows_from_arrays, windows_to_arrays
+from kinreg.run.codecs import windows_from_arrays, windows_to_arrays
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, SkippedWindow, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
@@ -46,9 +47,6 @@ log = logging.getLogger(__name__)
 # (the slicing stage's disk traffic) is a third smaller than with float64 coordinates.
 SPILL_RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f8"), ("intensity", "<f4")])
 
-# In POINTS mode the cloud is first spilled into bins of this length; windows are then formed
-# from consecutive bins, so the point counts need no extra pass over the cloud.
-POINT_MODE_BIN_S = 0.25
 
 # Open spill files kept at once; a time-sorted cloud touches one or two per chunk.
 _MAX_OPEN_FILES = 64
@@ -62,48 +60,6 @@ _BLOCK_POINTS = 1 << 15
 
 SPILL_PREFIX = "kinreg-slices-"  # name prefix of every spill folder
 SPILL_COMPLETE = ".complete"  # written into a spill folder after its last point
-
-
-def unit_edges(trajectory: Trajectory, config: SlicingConfig) -> FloatArray:
-    """Time edges (seconds, increasing) of the spill units covering the trajectory.
-
-    DURATION and PATH: one unit per window, of about equal duration / path length.
-    POINTS: bins of ``POINT_MODE_BIN_S``, grouped into windows after counting.
-    """
-    t0, t1 = trajectory.t_start_s, trajectory.t_end_s
-    duration = t1 - t0
-    if config.mode is WindowMode.DURATION:
-        n = max(1, round(duration / config.window_s))
-        return np.linspace(t0, t1, n + 1)
-    if config.mode is WindowMode.PATH:
-        step = np.linalg.norm(np.diff(trajectory.poses.t_xyz, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(step)])
-        n = max(1, round(s[-1] / config.window_path_m))
-        # Standing still adds no path; interpolating on the strictly increasing part avoids
-        # ambiguous edges there.
-        keep = np.concatenate([[True], np.diff(s) > 0])
-        edges = np.interp(np.linspace(0.0, s[-1], n + 1), s[keep], trajectory.stamps_s[keep])
-        edges[0], edges[-1] = t0, t1
-        return np.unique(edges)
-    n = max(1, int(np.ceil(duration / POINT_MODE_BIN_S)))
-    return np.linspace(t0, t1, n + 1)
-
-
-def _group_point_bins(counts: np.ndarray, target: int) -> list[tuple[int, int]]:
-    """Consecutive bin ranges [a, b) holding about ``target`` points each."""
-    groups: list[tuple[int, int]] = []
-    start, acc = 0, 0
-    for k, c in enumerate(counts):
-        acc += int(c)
-        if acc >= target:
-            groups.append((start, k + 1))
-            start, acc = k + 1, 0
-    if start < len(counts):
-        if groups and acc < target // 2:
-            groups[-1] = (groups[-1][0], len(counts))  # a short remainder joins the last window
-        else:
-            groups.append((start, len(counts)))
-    return groups
 
 
 class _SpillWriter:
@@ -303,7 +259,6 @@ def slice_quasi_static(
     """
     progress = progress or NullProgress()
     edges = unit_edges(trajectory, config)
-    n_units = len(edges) - 1
     owns_folder = folder is None
     if folder is None:
         folder = make_spill_folder(config, workdir)
@@ -343,24 +298,7 @@ def slice_quasi_static(
         shutil.rmtree(folder, ignore_errors=True)
         raise
 
-    if config.mode is WindowMode.POINTS:
-        ranges = _group_point_bins(store.counts, config.window_points)
-    else:
-        ranges = [(k, k + 1) for k in range(n_units)]
-
-    windows: list[ScanWindow] = []
-    kept_ranges: list[tuple[int, int]] = []
-    skipped: list[SkippedWindow] = []
-    for a, b in ranges:
-        n = int(store.counts[a:b].sum())
-        t_start, t_end = float(edges[a]), float(edges[b])
-        if n < config.min_points:
-            skipped.append(SkippedWindow(t_start, t_end, n))
-            continue
-        k = trajectory.nearest_index(0.5 * (t_start + t_end))
-        windows.append(ScanWindow(len(windows), t_start, t_end, float(trajectory.stamps_s[k]),
-                                  trajectory.poses[k]))
-        kept_ranges.append((a, b))
+    windows, kept_ranges, skipped, n_ranges = choose_windows(trajectory, edges, store.counts, config)
 
     n_in_skipped = sum(s.n_points for s in skipped)
     summary = SlicingSummary(
@@ -383,7 +321,7 @@ def slice_quasi_static(
                 f"none of the {n_read:,} points lies in the trajectory's time range "
                 f"[{trajectory.t_start_s:.3f}, {trajectory.t_end_s:.3f}] s", cloud.path)
         raise InputError(
-            f"no window has at least {config.min_points} points ({len(ranges)} windows); "
+            f"no window has at least {config.min_points} points ({n_ranges} windows); "
             "use longer windows or a smaller min_points", cloud.path)
     return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=owns_folder)
 

@@ -38,20 +38,12 @@ from kinreg.geometry import Pose
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
 from kinreg.progress import NullProgress, Progress
+from kinreg.run.codecs import links_from_arrays, links_to_arrays, scan_planes_from_arrays, scan_planes_to_arrays
 from kinreg.run.corrected_cloud import write_corrected_las
 from kinreg.run.executor import ExecutorContext, in_process, parallel_map
-from kinreg.run.output_folder import (
-    CachedSlices,
-    RunCache,
-    content_parts,
-    dataclass_parts,
-    remove_outputs,
-    scan_planes_from_arrays,
-    scan_planes_to_arrays,
-)
+from kinreg.run.output_folder import CachedSlices, RunCache, content_parts, dataclass_parts, remove_outputs
 from kinreg.run.runs import RunInputs, adjusted_scans, label_run, run_output_names
 from kinreg.run.spill import QuasiStaticSequence
-from kinreg.run.stage_cache import links_from_arrays, links_to_arrays
 from kinreg.types import (
     BlockResult,
     Link,
