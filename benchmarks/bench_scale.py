@@ -59,7 +59,7 @@ _RUNS: dict[Any, Any] = {}
 
 
 def _run_of(config: Any) -> Any:
-    from kinreg.simulation import simulate_run
+    from kinreg.simulation.run import simulate_run
 
     if config not in _RUNS:
         _RUNS.clear()
@@ -76,7 +76,9 @@ def simulate_block(task: tuple[Any, int]) -> tuple[np.ndarray, np.ndarray, np.nd
 
 def seed_like_config(n_points: float, seed: int = 1) -> Any:
     """A simulation of ``n_points`` at the seed's point rate and walking speed."""
-    from kinreg.simulation import SensorConfig, SimulationConfig, WalkConfig
+    from kinreg.simulation.run import SimulationConfig
+    from kinreg.simulation.sensor import SensorConfig
+    from kinreg.simulation.walk import WalkConfig
 
     duration = n_points / SEED_POINTS_PER_S
     sensor = SensorConfig(pulse_rate_hz=SEED_POINTS_PER_S, n_beams=16)
@@ -92,7 +94,8 @@ def generate(folder: Path, n_points: float, workers: int) -> tuple[Path, Path, d
     import laspy
 
     from kinreg.run.executor import make_executor
-    from kinreg.simulation import _las_header, write_trajectory_geoslam
+    from kinreg.simulation.files import write_trajectory_geoslam
+    from kinreg.simulation.files import _las_header
 
     t0 = time.perf_counter()
     config = seed_like_config(n_points)

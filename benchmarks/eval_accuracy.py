@@ -44,14 +44,11 @@ def scenario_config(name: str, seed: int | None = None):
 
 
 def _scenario_config(name: str):
-    from kinreg.simulation import (
-        BuildingConfig,
-        BuildingLayout,
-        DriftConfig,
-        SensorConfig,
-        SimulationConfig,
-        config_from_dict,
-    )
+    from kinreg.simulation.drift import DriftConfig
+    from kinreg.simulation.run import SimulationConfig
+    from kinreg.simulation.run import config_from_dict
+    from kinreg.simulation.scene import BuildingConfig, BuildingLayout
+    from kinreg.simulation.sensor import SensorConfig
 
     if name == "sample":
         meta = json.loads((REPO / "sample_data" / "run_meta.json").read_text())
@@ -98,7 +95,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
     from kinreg.io.trajectory import read_trajectory
     from kinreg.report.json import rigid_fit
     from kinreg.run.pipeline import ProcessInputs, process
-    from kinreg.simulation import simulate_run, write_run
+    from kinreg.simulation.files import write_run
+    from kinreg.simulation.run import simulate_run
 
     cfg = scenario_config(name, seed)
     if name == "sample" and seed is None:

@@ -80,7 +80,8 @@ def evaluate(name: str, work: Path) -> dict:
     from kinreg.io.trajectory import read_trajectory
     from kinreg.report.json import rigid_fit
     from kinreg.run.pipeline import ProcessInputs, process
-    from kinreg.simulation import simulate_run, write_run
+    from kinreg.simulation.files import write_run
+    from kinreg.simulation.run import simulate_run
 
     data = REPO / "sample_data" if name == "sample" else work / "data"
     if name != "sample":

@@ -95,7 +95,8 @@ def run(name: str, work: Path, inject: bool = False, jumps: bool = False, seed: 
     import kinreg.estimate.network as network
     from kinreg.config import KinregConfig
     from kinreg.run.pipeline import ProcessInputs, process
-    from kinreg.simulation import simulate_run, write_run
+    from kinreg.simulation.files import write_run
+    from kinreg.simulation.run import simulate_run
     from kinreg.types import PlaneMatch
 
     data = REPO / "sample_data" if name == "sample" else work / "data"

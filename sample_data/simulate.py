@@ -15,12 +15,9 @@ import sys
 import time
 from pathlib import Path
 
-from kinreg.simulation import (
-    BuildingLayout,
-    SimulationConfig,
-    simulate_run,
-    write_run,
-)
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import SimulationConfig, simulate_run
+from kinreg.simulation.scene import BuildingLayout
 
 UTM_ORIGIN = (500000.0, 5400000.0, 0.0)
 

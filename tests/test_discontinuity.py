@@ -20,16 +20,9 @@ from kinreg.estimate.jumps import (
 )
 from kinreg.geometry import Pose, quat_to_matrix, rotation_angle_rad, rotvec_to_quat
 from kinreg.io.trajectory import read_trajectory
-from kinreg.simulation import (
-    BuildingConfig,
-    BuildingLayout,
-    DriftConfig,
-    WalkConfig,
-    apply_drift,
-    make_building,
-    make_drift,
-    make_walk,
-)
+from kinreg.simulation.drift import DriftConfig, apply_drift, make_drift
+from kinreg.simulation.scene import BuildingConfig, BuildingLayout, make_building
+from kinreg.simulation.walk import WalkConfig, make_walk
 from kinreg.types import Trajectory, TrajectoryJump
 
 UTM = np.array([500000.0, 5400000.0, 300.0])

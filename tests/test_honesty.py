@@ -17,7 +17,8 @@ import pytest
 from kinreg.config import KinregConfig
 from kinreg.io.trajectory import read_trajectory
 from kinreg.run.pipeline import ProcessInputs, process
-from kinreg.simulation import config_from_dict, simulate_run, write_run
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import config_from_dict, simulate_run
 
 SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
 

@@ -28,7 +28,8 @@ from kinreg.io.e57 import list_e57_scans
 from kinreg.io.trajectory import read_trajectory
 from kinreg.report.json import rigid_fit
 from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
-from kinreg.simulation import config_from_dict, simulate_run, write_run
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import config_from_dict, simulate_run
 from kinreg.types import ObservationKind, ScanKind, Station
 
 # (seed, start after run 1 [s], offset of the run's frame [m])

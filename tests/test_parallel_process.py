@@ -4,7 +4,8 @@ import pytest
 
 from kinreg.config import KinregConfig
 from kinreg.run.pipeline import ProcessInputs, process
-from kinreg.simulation import SimulationConfig, simulate_run, write_run
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import SimulationConfig, simulate_run
 
 
 @pytest.fixture(scope="module")

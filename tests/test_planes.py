@@ -380,8 +380,10 @@ def test_quasi_static_scan_from_the_simulator() -> None:
     """A 6 s window of the simulated handheld run (kinreg.simulation), points in the frame of the
     SLAM pose at the window's middle: the detected planes are the building's true planes mapped
     into the scan frame with the TRUE pose (the drift is constant over 6 s, so it cancels)."""
-    sim = pytest.importorskip("kinreg.simulation")
-    run = sim.simulate_run(sim.SimulationConfig(duration_s=40.0, static=sim.StaticConfig(n_scans=1,
+    from kinreg.simulation.run import SimulationConfig, simulate_run
+    from kinreg.simulation.sensor import StaticConfig
+
+    run = simulate_run(SimulationConfig(duration_s=40.0, static=StaticConfig(n_scans=1,
                                                                                       angle_step_deg=3.0)))
     blk = run.cloud_block(0)
     t_mid = run.truth.t_start_s + 6.0

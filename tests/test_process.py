@@ -12,7 +12,8 @@ from kinreg.io.e57 import list_e57_scans
 from kinreg.io.trajectory import read_trajectory
 from kinreg.report.json import rigid_fit
 from kinreg.report.tables import STATIONS_HEADER
-from kinreg.simulation import SimulationConfig, simulate_run, write_run
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import SimulationConfig, simulate_run
 
 
 @pytest.fixture(scope="module")

@@ -25,7 +25,8 @@ from kinreg_cli.main import main
 from kinreg.config import load_config
 from kinreg.run.output_folder import CACHE_FOLDER
 from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
-from kinreg.simulation import SimulationConfig, simulate_run, write_run
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import SimulationConfig, simulate_run
 
 VOLATILE_REPORT_KEYS = ("timings_s", "stage_cache")
 

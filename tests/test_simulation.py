@@ -12,23 +12,11 @@ import pytest
 import tomllib
 
 from kinreg.geometry import Pose, interpolate_poses, quat_to_rotvec
-from kinreg.simulation import (
-    BuildingConfig,
-    BuildingLayout,
-    DriftConfig,
-    Patch,
-    Scene,
-    SensorConfig,
-    SimulatedRun,
-    SimulationConfig,
-    StaticConfig,
-    _interpolate_fast,
-    make_box_scene,
-    make_building,
-    make_drift,
-    simulate_run,
-    write_run,
-)
+from kinreg.simulation.drift import DriftConfig, make_drift
+from kinreg.simulation.files import write_run
+from kinreg.simulation.run import SimulatedRun, SimulationConfig, simulate_run
+from kinreg.simulation.scene import BuildingConfig, BuildingLayout, Patch, Scene, make_box_scene, make_building
+from kinreg.simulation.sensor import SensorConfig, StaticConfig, _interpolate_fast
 
 TINY = SimulationConfig(
     seed=5,

@@ -1,0 +1,231 @@
+"""One simulated run: configuration, true and drifted trajectories, and the cloud cast block by block."""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from kinreg.geometry import (
+    FloatArray,
+    Pose,
+    quat_to_rotvec,
+)
+from kinreg.simulation.drift import DriftConfig, _offset_trajectory, apply_drift, make_drift
+from kinreg.simulation.scene import BuildingConfig, BuildingLayout, Scene, ScenePlane, make_building
+from kinreg.simulation.sensor import (
+    SensorConfig,
+    StaticConfig,
+    _head_directions,
+    _intensity,
+    _interpolate_fast,
+    make_static_scans,
+)
+from kinreg.simulation.walk import WalkConfig, make_walk
+from kinreg.types import Scan, Trajectory
+
+logger = logging.getLogger(__name__)
+
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Everything :func:`simulate_run` needs. Deterministic given the configuration.
+
+    ``origin_xyz`` is added to every object-frame output (a UTM-like offset, e.g.
+    ``(500000.0, 5400000.0, 0.0)``); the simulation itself runs in building coordinates.
+    """
+
+    seed: int = 1
+    duration_s: float = 240.0
+    t0_s: float = 1623220971.0
+    building: BuildingConfig = field(default_factory=BuildingConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    walk: WalkConfig = field(default_factory=WalkConfig)
+    drift: DriftConfig = field(default_factory=DriftConfig)
+    static: StaticConfig = field(default_factory=StaticConfig)
+    origin_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    block_s: float = 10.0  # the cloud is generated in blocks of this much scanning time
+
+
+def config_as_dict(config: SimulationConfig) -> dict[str, Any]:
+    """The configuration as plain JSON-able values (enums by value)."""
+
+    def conv(x: Any) -> Any:
+        if isinstance(x, enum.Enum):
+            return x.value
+        if isinstance(x, dict):
+            return {k: conv(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [conv(v) for v in x]
+        return x
+
+    return conv(dataclasses.asdict(config))
+
+
+def config_from_dict(data: dict[str, Any]) -> SimulationConfig:
+    """The inverse of :func:`config_as_dict` (e.g. from ``run_meta.json``): rebuilds the run."""
+    sections = {"building": BuildingConfig, "sensor": SensorConfig, "walk": WalkConfig, "drift": DriftConfig,
+                "static": StaticConfig}
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        if key in sections:
+            sub = dict(value)
+            if key == "building" and "layout" in sub:
+                sub["layout"] = BuildingLayout(sub["layout"])
+            kwargs[key] = sections[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()})
+        else:
+            kwargs[key] = tuple(value) if isinstance(value, list) else value
+    return SimulationConfig(**kwargs)
+
+
+def _rng(seed: int, stream: int) -> np.random.Generator:
+    # One independent stream per purpose, so that changing e.g. the noise leaves the walk alone.
+    return np.random.default_rng([seed, stream])
+
+
+@dataclass(frozen=True, eq=False)
+class CloudBlock:
+    """One block of simulated points, in acquisition order.
+
+    ``stamps_s`` (N,) float64 point times; ``xyz_sensor`` (N, 3) measured points in the platform
+    frame (range noise included); ``xyz_obj`` (N, 3) exported object-frame points (mapped with the
+    interpolated DRIFTED trajectory, ``origin_xyz`` included); ``intensity`` (N,) uint16;
+    ``patch_id`` (N,) the scene patch each ray hit; ``range_m`` (N,) measured ranges.
+    """
+
+    stamps_s: FloatArray
+    xyz_sensor: FloatArray
+    xyz_obj: FloatArray
+    intensity: NDArray[np.uint16]
+    patch_id: IntArray
+    range_m: FloatArray
+    first_index: int = 0
+
+    def __len__(self) -> int:
+        return len(self.stamps_s)
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedRun:
+    """A simulated acquisition with its ground truth. Object-frame values include ``origin_xyz``.
+
+    ``truth`` and ``slam`` are the true and the exported (drifted) 100 Hz trajectories
+    ``T_obj_p``; ``drift`` (one pose per row) satisfies ``slam = drift * truth``. ``scene`` is in
+    building coordinates (add ``origin_xyz``, or use :meth:`scene_planes_obj`). The cloud is
+    generated on demand, block by block, by :meth:`iter_cloud_blocks`.
+    """
+
+    config: SimulationConfig
+    scene: Scene
+    truth: Trajectory
+    slam: Trajectory
+    drift: Pose
+    static_scans: tuple[Scan, ...]
+
+    @property
+    def origin(self) -> FloatArray:
+        return np.asarray(self.config.origin_xyz, dtype=np.float64)
+
+    def n_blocks(self) -> int:
+        return max(1, math.ceil(self.config.duration_s / self.config.block_s - 1e-9))
+
+    def iter_cloud_blocks(self) -> Iterator[CloudBlock]:
+        """The cloud in time blocks of ``config.block_s``; deterministic, independent of callers."""
+        first = 0
+        for b in range(self.n_blocks()):
+            blk = self.cloud_block(b, first_index=first)
+            first += len(blk)
+            yield blk
+
+    def cloud_block(self, index: int, first_index: int = 0) -> CloudBlock:
+        """Block ``index`` of the cloud (its pulses ``[index, index + 1) * block_s``)."""
+        return _simulate_block(self, index, first_index)
+
+    def scene_planes_obj(self) -> list[ScenePlane]:
+        """The scene's planes in the output object frame (``origin_xyz`` applied)."""
+        o = self.origin
+        return [dataclasses.replace(p, d=float(p.d + p.normal @ o)) for p in self.scene.planes()]
+
+    def drift_at_end(self) -> tuple[float, float]:
+        """(position difference slam - truth in metres, drift rotation angle in degrees) at the end."""
+        dp = float(np.linalg.norm(self.slam.poses.t_xyz[-1] - self.truth.poses.t_xyz[-1]))
+        da = float(np.degrees(np.linalg.norm(quat_to_rotvec(self.drift.quat_wxyz[-1]))))
+        return dp, da
+
+
+def simulate_run(config: SimulationConfig | None = None) -> SimulatedRun:
+    """Build the scene, the true walk, the drifted trajectory and the static scans.
+
+    The point cloud is not generated here (it may be hundreds of millions of points): iterate
+    :meth:`SimulatedRun.iter_cloud_blocks` or call :func:`write_run`.
+    """
+    cfg = config or SimulationConfig()
+    if cfg.duration_s <= 2 * cfg.walk.pause_s + 4.0:
+        raise ValueError(f"duration_s must exceed 2 * pause_s + 4 s, got {cfg.duration_s}")
+    scene = make_building(cfg.building)
+    truth_local = make_walk(scene, cfg.walk, cfg.duration_s, cfg.t0_s, _rng(cfg.seed, 1))
+    drift = make_drift(truth_local.stamps_s, truth_local.poses.t_xyz[0], cfg.drift, _rng(cfg.seed, 2))
+    slam_local = apply_drift(truth_local, drift)
+    origin = np.asarray(cfg.origin_xyz, dtype=np.float64)
+    # The drift in the output frame: D' = O D O^-1 (same rotation, pivot moved with the origin).
+    drift_out = Pose(drift.quat_wxyz, drift.t_xyz + origin - np.einsum("nij,j->ni", drift.rotation_matrix,
+                                                                          origin))
+    static = make_static_scans(scene, cfg.static, _rng(cfg.seed, 4), origin)
+    return SimulatedRun(cfg, scene, _offset_trajectory(truth_local, origin),
+                        _offset_trajectory(slam_local, origin), drift_out, static)
+
+
+def _simulate_block(run: SimulatedRun, index: int, first_index: int) -> CloudBlock:
+    cfg = run.config
+    sen = cfg.sensor
+    rng = _rng(cfg.seed, 1000 + index)
+    pr = sen.pulse_rate_hz
+    k0 = round(index * cfg.block_s * pr)
+    k1 = min(round((index + 1) * cfg.block_s * pr), math.floor(cfg.duration_s * pr))
+    k = np.arange(k0, max(k0, k1), dtype=np.int64)
+    # float64 seconds: t0 + k / rate is exact to ~0.2 microseconds at GPS-like magnitudes
+    stamps = cfg.t0_s + k / pr
+    beam = k % sen.n_beams
+    theta = 2 * np.pi * np.mod(k * (sen.line_rate_hz / pr), 1.0)
+    psi = 2 * np.pi * np.mod(k * (sen.head_rate_hz / pr), 1.0)
+    if sen.n_beams > 1:
+        elev = np.radians(np.linspace(-sen.beam_spread_deg / 2, sen.beam_spread_deg / 2, sen.n_beams))[beam]
+    else:
+        elev = np.zeros(len(k))
+    d_nom = _head_directions(theta, elev, psi)
+    blind_axis = np.asarray(sen.blind_axis_p, dtype=np.float64)
+    blind_axis /= np.linalg.norm(blind_axis)
+    seen = d_nom @ blind_axis < math.cos(math.radians(sen.blind_cone_deg))
+    stamps, theta, elev, psi, d_nom = stamps[seen], theta[seen], elev[seen], psi[seen], d_nom[seen]
+    n = len(stamps)
+    # The laser goes where the encoders do not quite say: cast along the perturbed direction,
+    # report along the nominal one.
+    sa = math.radians(sen.angle_sigma_deg)
+    d_true = _head_directions(theta + sa * rng.standard_normal(n), elev + sa * rng.standard_normal(n), psi)
+    # Ray casting in building coordinates from the interpolated TRUE trajectory.
+    origin = run.origin
+    truth = run.truth
+    R_true, o_true = _interpolate_fast(truth.stamps_s, truth.poses, stamps)
+    dirs_obj = np.einsum("nij,nj->ni", R_true, d_true)
+    r_true, pid = run.scene.raycast(o_true - origin, dirs_obj, sen.max_range_m, sen.min_range_m)
+    hit = pid >= 0
+    stamps, d_nom, dirs_obj, r_true, pid = stamps[hit], d_nom[hit], dirs_obj[hit], r_true[hit], pid[hit]
+    n = len(stamps)
+    r_meas = r_true + sen.range_sigma_m * rng.standard_normal(n)
+    xyz_sensor = r_meas[:, None] * d_nom
+    # Exported cloud: the interpolated DRIFTED trajectory, exactly as SLAM software georeferences.
+    R_slam, t_slam = _interpolate_fast(run.slam.stamps_s, run.slam.poses, stamps)
+    xyz_obj = np.einsum("nij,nj->ni", R_slam, xyz_sensor) + t_slam
+    normals = np.array([p.normal for p in run.scene.patches])[pid]
+    refl = np.array([p.reflectivity for p in run.scene.patches])[pid]
+    intensity = _intensity(refl, -np.einsum("ij,ij->i", normals, dirs_obj), r_true, sen.intensity_noise, rng)
+    return CloudBlock(stamps, xyz_sensor, xyz_obj, intensity, pid, r_meas, first_index)
