@@ -47,9 +47,8 @@ from kinreg.types import Scan  # noqa: E402
 
 def simulator_scan(n_target: int) -> tuple[Scan, list[tuple[np.ndarray, float]]]:
     """A static scan (1 cm range noise) in the simulator's building and its true planes (scan frame)."""
-    from kinreg.simulation.sensor import StaticConfig
     from kinreg.simulation.scene import BuildingConfig, make_building
-    from kinreg.simulation.sensor import make_static_scans
+    from kinreg.simulation.sensor import StaticConfig, make_static_scans
 
     scene = make_building(BuildingConfig())
     # The static grid has about (360 / step) * (150 / step) directions; choose the step for n_target.

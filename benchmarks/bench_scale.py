@@ -94,8 +94,7 @@ def generate(folder: Path, n_points: float, workers: int) -> tuple[Path, Path, d
     import laspy
 
     from kinreg.run.executor import make_executor
-    from kinreg.simulation.files import write_trajectory_geoslam
-    from kinreg.simulation.files import _las_header
+    from kinreg.simulation.files import _las_header, write_trajectory_geoslam
 
     t0 = time.perf_counter()
     config = seed_like_config(n_points)

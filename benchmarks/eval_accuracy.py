@@ -45,8 +45,7 @@ def scenario_config(name: str, seed: int | None = None):
 
 def _scenario_config(name: str):
     from kinreg.simulation.drift import DriftConfig
-    from kinreg.simulation.run import SimulationConfig
-    from kinreg.simulation.run import config_from_dict
+    from kinreg.simulation.run import SimulationConfig, config_from_dict
     from kinreg.simulation.scene import BuildingConfig, BuildingLayout
     from kinreg.simulation.sensor import SensorConfig
 

@@ -28,6 +28,7 @@ import laspy
 import numpy as np
 import pytest
 from conftest import SyntheticRun, write_synthetic_run
+from e57fixtures import write_raw_e57_scan
 from kinreg_cli.main import main
 from pye57 import libe57
 
@@ -141,36 +142,8 @@ def _scan(points: int = 3000, stamps: bool = True, pose: Pose | None = None) -> 
 
 def _write_e57_without_pose(path: Path) -> None:
     """A static scan as many scanners' exports have it: cartesian points, no ``pose`` element."""
-    rng = np.random.default_rng(3)
-    xyz = rng.uniform(-5.0, 5.0, (200, 3))
-    imf = libe57.ImageFile(str(path), "w")
-    try:
-        root = imf.root()
-        root.set("formatName", libe57.StringNode(imf, "ASTM E57 3D Imaging Data File"))
-        root.set("guid", libe57.StringNode(imf, "{no-pose-test}"))
-        root.set("versionMajor", libe57.IntegerNode(imf, 1))
-        root.set("versionMinor", libe57.IntegerNode(imf, 0))
-        data3d = libe57.VectorNode(imf, True)
-        root.set("data3D", data3d)
-        entry = libe57.StructureNode(imf)
-        entry.set("guid", libe57.StringNode(imf, "{s0}"))
-        entry.set("name", libe57.StringNode(imf, "tls_without_pose"))
-        prototype = libe57.StructureNode(imf)
-        for name in ("cartesianX", "cartesianY", "cartesianZ"):
-            prototype.set(name, libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE))
-        points = libe57.CompressedVectorNode(imf, prototype, libe57.VectorNode(imf, True))
-        entry.set("points", points)
-        data3d.append(entry)
-        buffers = libe57.VectorSourceDestBuffer()
-        columns = {name: np.ascontiguousarray(xyz[:, i]) for i, name in enumerate(("cartesianX", "cartesianY",
-                                                                                    "cartesianZ"))}
-        for name, values in columns.items():
-            buffers.append(libe57.SourceDestBuffer(imf, name, values, len(xyz), True, True))
-        writer = points.writer(buffers)
-        writer.write(len(xyz))
-        writer.close()
-    finally:
-        imf.close()
+    xyz = np.random.default_rng(3).uniform(-5.0, 5.0, (200, 3))
+    write_raw_e57_scan(path, "tls_without_pose", {f"cartesian{c}": xyz[:, i] for i, c in enumerate("XYZ")})
 
 
 def _write_corridor(folder: Path) -> None:

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from e57fixtures import write_raw_e57_scan
 from pye57 import libe57
 
 from kinreg.errors import CloudError, OutputError
@@ -283,39 +284,8 @@ def test_spherical_only_scan_is_converted(tmp_path: Path) -> None:
     el = rng.uniform(-1.2, 1.2, 50)
     state = (np.arange(50) % 10 == 0).astype(np.int8)  # every tenth record flagged invalid
     path = tmp_path / "spherical.e57"
-    imf = libe57.ImageFile(str(path), "w")
-    try:
-        root = imf.root()
-        root.set("formatName", libe57.StringNode(imf, "ASTM E57 3D Imaging Data File"))
-        root.set("guid", libe57.StringNode(imf, "{spherical-test}"))
-        root.set("versionMajor", libe57.IntegerNode(imf, 1))
-        root.set("versionMinor", libe57.IntegerNode(imf, 0))
-        data3d = libe57.VectorNode(imf, True)
-        root.set("data3D", data3d)
-        entry = libe57.StructureNode(imf)
-        entry.set("guid", libe57.StringNode(imf, "{s0}"))
-        entry.set("name", libe57.StringNode(imf, "tls"))
-        prototype = libe57.StructureNode(imf)
-        for name in ("sphericalRange", "sphericalAzimuth", "sphericalElevation"):
-            prototype.set(name, libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE))
-        prototype.set("sphericalInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
-        points = libe57.CompressedVectorNode(imf, prototype, libe57.VectorNode(imf, True))
-        entry.set("points", points)
-        data3d.append(entry)
-        buffers = libe57.VectorSourceDestBuffer()
-        arrays = {
-            "sphericalRange": r,
-            "sphericalAzimuth": az,
-            "sphericalElevation": el,
-            "sphericalInvalidState": state,
-        }
-        for name, array in arrays.items():
-            buffers.append(libe57.SourceDestBuffer(imf, name, array, 50, True, True))
-        writer = points.writer(buffers)
-        writer.write(50)
-        writer.close()
-    finally:
-        imf.close()
+    write_raw_e57_scan(path, "tls", {"sphericalRange": r, "sphericalAzimuth": az, "sphericalElevation": el,
+                                     "sphericalInvalidState": state})
     scan = read_e57_scan(path, 0, require_pose=False)
     keep = state == 0
     want = np.column_stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)])

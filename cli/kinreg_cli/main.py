@@ -76,7 +76,12 @@ def info(
         rows = describe_cloud(file, full=full, progress=RichProgress(console) if full else None)
     else:
         rows = describe_trajectory(file, None if trajectory_format == "auto" else trajectory_format)
-    table = Table(title=str(file), show_header=False, title_justify="left")
+    _print_figures(str(file), rows)
+
+
+def _print_figures(title: str, rows: list[tuple[str, str]]) -> None:
+    """A two-column table of named figures on standard output."""
+    table = Table(title=escape(title), show_header=False, title_justify="left")
     table.add_column("", style="bold")
     table.add_column("")
     for key, value in rows:
@@ -99,14 +104,14 @@ def slice_command(
 
     cfg = _config(config, {"slicing.window_s": window_s, "slicing.mode": mode})
     summary = slice_to_e57(trajectory, cloud, out_path, cfg, overwrite=overwrite, progress=RichProgress(console))
-    table = Table(title="quasi-static sequence", show_header=False, title_justify="left")
-    table.add_row("scans", f"{summary.n_scans}")
-    table.add_row("points in scans", f"{summary.n_points_in_scans:,}")
-    table.add_row("points outside trajectory", f"{summary.n_points_outside_trajectory:,} "
-                  f"({100 * summary.share_outside:.1f} %)")
-    table.add_row("windows skipped", f"{len(summary.skipped)} ({summary.n_points_in_skipped_windows:,} points)")
-    table.add_row("written", str(out_path))
-    out.print(table)
+    _print_figures("quasi-static sequence", [
+        ("scans", f"{summary.n_scans}"),
+        ("points in scans", f"{summary.n_points_in_scans:,}"),
+        ("points outside trajectory",
+         f"{summary.n_points_outside_trajectory:,} ({100 * summary.share_outside:.1f} %)"),
+        ("windows skipped", f"{len(summary.skipped)} ({summary.n_points_in_skipped_windows:,} points)"),
+        ("written", str(out_path)),
+    ])
 
 
 @app.command("link")
@@ -126,13 +131,13 @@ def link_command(
     cfg = _config(config, {"slicing.window_s": window_s})
     summary = link_to_folder(trajectory, cloud, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console),
                              workers=workers, scheduler=scheduler)
-    table = Table(title=f"pairwise links in {out_dir}", show_header=False, title_justify="left")
-    table.add_row("scans", f"{summary.n_scans}")
-    table.add_row("planes", f"{summary.n_planes} ({summary.n_planes / max(summary.n_scans, 1):.1f} per scan)")
-    table.add_row("candidate pairs", f"{summary.n_candidate_pairs}")
-    table.add_row("links", f"{summary.n_links} " + ", ".join(f"{k} {v}" for k, v in summary.by_status.items()))
-    table.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.seconds.items()))
-    out.print(table)
+    _print_figures(f"pairwise links in {out_dir}", [
+        ("scans", f"{summary.n_scans}"),
+        ("planes", f"{summary.n_planes} ({summary.n_planes / max(summary.n_scans, 1):.1f} per scan)"),
+        ("candidate pairs", f"{summary.n_candidate_pairs}"),
+        ("links", f"{summary.n_links} " + ", ".join(f"{k} {v}" for k, v in summary.by_status.items())),
+        ("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.seconds.items())),
+    ])
 
 
 @app.command("process")
@@ -163,26 +168,23 @@ def process_command(
     inputs = ProcessInputs.from_runs(trajectory, cloud, static, reference)
     summary = process(inputs, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console), workers=workers,
                       scheduler=scheduler, resume=resume)
-    table = Table(title=f"kinreg results in {out_dir}", show_header=False, title_justify="left")
-    table.add_column("", style="bold")
-    table.add_column("")
-    if summary.n_runs > 1:
-        table.add_row("runs", f"{summary.n_runs}")
-    table.add_row("stations", f"{summary.n_stations}")
-    table.add_row("links", f"{summary.n_links}")
     verdict = "passed" if summary.global_test_passed else "FAILED (sigmas scaled by sigma0)"
-    table.add_row("sigma0", f"{summary.sigma0:.3f} (global test {verdict})")
-    table.add_row("position sigma",
-                  f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm")
-    table.add_row("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm")
-    table.add_row("rejected observations", f"{summary.n_rejected}")
-    table.add_row("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items()))
+    rows = [("runs", f"{summary.n_runs}")] if summary.n_runs > 1 else []
+    rows += [
+        ("stations", f"{summary.n_stations}"),
+        ("links", f"{summary.n_links}"),
+        ("sigma0", f"{summary.sigma0:.3f} (global test {verdict})"),
+        ("position sigma", f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm"),
+        ("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm"),
+        ("rejected observations", f"{summary.n_rejected}"),
+        ("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items())),
+    ]
     reused = {k: v for k, v in summary.stage_cache.items() if v["reused"]}
     if reused:
-        table.add_row("re-used (stage cache)", ", ".join(
+        rows.append(("re-used (stage cache)", ", ".join(
             f"{k} {v['reused']}/{v['reused'] + v['computed']}" if v["reused"] + v["computed"] > 1 else k
-            for k, v in reused.items()))
-    out.print(table)
+            for k, v in reused.items())))
+    _print_figures(f"kinreg results in {out_dir}", rows)
 
 
 @app.command("config")
