@@ -1,4 +1,13 @@
-"""The pipelines, readable top to bottom: each line names one stage."""
+"""The pipelines, readable top to bottom: each line names one stage.
+
+``process`` runs per-scan and per-pair work on ``workers`` local processes (``None``: every core;
+1: in this process) or on the Dask cluster at ``scheduler``; results do not depend on either.
+Each stage keeps its results in the output folder's stage cache (:mod:`kinreg.run.output_folder`).
+A folder that holds results or a cache is refused, unless ``resume`` (re-use the cache: only
+stages whose inputs changed are done again, and the outputs are rewritten) or ``overwrite``
+(start afresh). A run killed at any point and resumed gives the same outputs as one that ran
+through.
+"""
 
 from __future__ import annotations
 
@@ -210,30 +219,13 @@ def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False,
     return run
 
 
-def process(
-    inputs: ProcessInputs,
-    out_dir: str | Path,
-    config: KinregConfig,
-    overwrite: bool = False,
-    progress: Progress | None = None,
-    workers: int | None = 1,
-    scheduler: str | None = None,
-    resume: bool = False,
-) -> ProcessSummary:
-    """``kinreg process``: read, slice, detect planes, link, adjust, correct, report.
-
-    Per-scan and per-pair work runs on ``workers`` local processes (``None``: every core; 1: in
-    this process) or on the Dask cluster at ``scheduler``; results do not depend on either.
-
-    Each stage keeps its results in the output folder's stage cache (:mod:`kinreg.run.output_folder`).
-    A folder that holds results or a cache is refused, unless ``resume`` (re-use the cache: only
-    stages whose inputs changed are done again, and the outputs are rewritten) or ``overwrite``
-    (start afresh). A run killed at any point and resumed gives the same outputs as one that ran
-    through.
-    """
+def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, overwrite: bool = False,
+            progress: Progress | None = None, workers: int | None = 1, scheduler: str | None = None,
+            resume: bool = False) -> ProcessSummary:
+    """``kinreg process``: read, slice, detect planes, link, adjust, correct, report (see the
+    module's docstring for ``workers``, ``scheduler``, ``resume`` and ``overwrite``)."""
     progress, out, clock = progress or NullProgress(), Path(out_dir), StageClock()
-    runs = inputs.runs  # each run is read and sliced on its own (kinreg.run.runs)
-    outputs = output_files(out, OUTPUT_FILES, len(runs))
+    runs, outputs = inputs.runs, output_files(out, OUTPUT_FILES, len(inputs.runs))  # runs: kinreg.run.runs
     folder = prepare_output_folder(out, overwrite, resume, outputs)
     references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
     static = config.static if inputs.static is not None else None
@@ -244,11 +236,9 @@ def process(
         executor = stack.enter_context(make_executor(workers, scheduler))
         clock.lap("slice")
         kinematic = detect_run_planes(sliced, trajectories, references, config, progress, executor, folder)
-        stations, planes = kinematic.stations, kinematic.planes
-        if inputs.static is not None:
-            static_stations, static_planes = detect_static_planes(inputs.static, len(stations), config.planes,
-                                                                  progress, folder)
-            stations, planes = stations + static_stations, planes + static_planes
+        static_stations, static_planes = detect_static_planes(inputs.static, len(kinematic.stations), config.planes,
+                                                              progress, folder)  # none without --static
+        stations, planes = kinematic.stations + static_stations, kinematic.planes + static_planes
         clock.lap("planes")
         links = link_stations_cached(stations, planes, config, static, progress, executor, folder)
         clock.lap("link")

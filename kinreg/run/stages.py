@@ -116,10 +116,12 @@ def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: P
     return [r[0] for r in done], [r[1] for r in done]
 
 
-def detect_static_planes(path: Path, first_id: int, config: PlanesConfig, progress: Progress,
+def detect_static_planes(path: Path | None, first_id: int, config: PlanesConfig, progress: Progress,
                          run: RunCache | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
-    """Planes of every static scan of a registered E57 (poses in the object frame required).
-    With ``run``, each scan is looked up in (and stored into) its stage cache."""
+    """Planes of every static scan of a registered E57 (poses in the object frame required);
+    none without ``path``. With ``run``, each scan is looked up in (and stored into) its stage cache."""
+    if path is None:
+        return [], []
     from kinreg.io.e57 import list_e57_scans, read_e57_scan
 
     headers = list_e57_scans(path)
