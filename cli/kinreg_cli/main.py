@@ -32,6 +32,10 @@ out = Console()
 
 CLOUD_SUFFIXES = {".las", ".laz", ".e57"}
 WORKERS_HELP = "Local worker processes for per-scan and per-pair work (default: every core; 1: none)."
+TrajectoryOption = Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")]
+CloudOption = Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")]
+WindowOption = Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")]
+ConfigOption = Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")]
 SCHEDULER_HELP = "Run per-scan and per-pair work on this Dask scheduler, e.g. tcp://host:8786."
 
 
@@ -91,12 +95,12 @@ def _print_figures(title: str, rows: list[tuple[str, str]]) -> None:
 
 @app.command("slice")
 def slice_command(
-    trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],
-    cloud: Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")],
+    trajectory: TrajectoryOption,
+    cloud: CloudOption,
     out_path: Annotated[Path, typer.Option("--out", "-o", help="The E57 sequence to write.")],
-    window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
+    window_s: WindowOption = None,
     mode: Annotated[WindowMode | None, typer.Option("--mode", help="How windows are cut.")] = None,
-    config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
+    config: ConfigOption = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing output.")] = False,
 ) -> None:
     """Slice a kinematic run into quasi-static scans and export them as one E57 sequence."""
@@ -116,11 +120,11 @@ def slice_command(
 
 @app.command("link")
 def link_command(
-    trajectory: Annotated[Path, typer.Option("--trajectory", "-t", help="Trajectory file.")],
-    cloud: Annotated[Path, typer.Option("--cloud", "-c", help="Point cloud (LAS/LAZ/E57) with point times.")],
+    trajectory: TrajectoryOption,
+    cloud: CloudOption,
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder (planes.csv, links.csv).")],
-    config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
-    window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
+    config: ConfigOption = None,
+    window_s: WindowOption = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing results.")] = False,
     workers: Annotated[int | None, typer.Option("--workers", help=WORKERS_HELP)] = None,
     scheduler: Annotated[str | None, typer.Option("--scheduler", help=SCHEDULER_HELP)] = None,
@@ -149,8 +153,8 @@ def process_command(
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
     static: Annotated[Path | None, typer.Option("--static", help="Registered static scans (E57 with poses).")] = None,
     reference: Annotated[Path | None, typer.Option("--reference", help="Reference planes (TOML).")] = None,
-    config: Annotated[Path | None, typer.Option("--config", help="A kinreg TOML configuration.")] = None,
-    window_s: Annotated[float | None, typer.Option("--window-s", help="Window length in seconds.")] = None,
+    config: ConfigOption = None,
+    window_s: WindowOption = None,
     overwrite: Annotated[
         bool, typer.Option("--overwrite", help="Start afresh: replace existing results, clear the stage cache.")
     ] = False,
