@@ -134,11 +134,19 @@ class Disconnected(enum.Enum):
     FIX_EACH = "fix_each"  # adjust each part in its own datum: its first station held fixed
 
 
+class OnFailure(enum.Enum):
+    """What to do when the block adjustment fails (no convergence, NaN, negative redundancy)."""
+
+    STOP = "stop"  # one line, exit 1, no outputs
+    REPORT = "report"  # also write report.json / report.html marked failed (no other outputs)
+
+
 @dataclasses.dataclass(frozen=True)
 class BlockConfig:
     alpha: float = 0.001  # significance of the global test and of data snooping
-    max_iterations: int = 20  # Gauss-Newton iterations
-    convergence: float = 1e-9  # stop when no unknown changes by more (m or rad)
+    max_iterations: int = 20  # damped Gauss-Newton (Levenberg-Marquardt) iterations per adjustment
+    convergence: float = 1e-9  # converged when no unknown changes by more (m or rad) ...
+    cost_tolerance: float = 1e-12  # ... or the weighted squared residuals fall by less than this share
     data_snooping: bool = True
     max_rejections: int = 50
     # Estimate one variance factor per observation kind, used only to inflate the a-priori model
@@ -146,6 +154,7 @@ class BlockConfig:
     variance_components: bool = True
     max_variance_rounds: int = 10
     disconnected: Disconnected = Disconnected.STOP
+    on_failure: OnFailure = OnFailure.STOP
 
 
 class StaticDatum(enum.Enum):

@@ -8,6 +8,10 @@ library never prints and never exits.
 from __future__ import annotations
 
 from os import PathLike
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from kinreg.types import BlockResult
 
 
 class KinregError(Exception):
@@ -45,3 +49,12 @@ class OutputError(KinregError):
 
 class EstimationError(KinregError):
     """An adjustment cannot be carried out (singular datum, too few observations)."""
+
+
+class AdjustmentFailedError(EstimationError):
+    """The block adjustment ran but gave no result (no convergence, a non-finite value, a
+    negative redundancy). ``result`` is the failed adjustment, for a report marked failed."""
+
+    def __init__(self, reason: str, result: BlockResult) -> None:
+        super().__init__(reason)
+        self.result = result

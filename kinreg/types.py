@@ -297,6 +297,9 @@ class BlockResult:
     phi), ``cov_position`` (n, 3, 3) that of its position in the object frame, both already
     multiplied by ``variance_factor`` (1, or the estimated sigma0^2 where the global test
     showed the a-priori model too optimistic). Fixed stations have zero covariance.
+
+    ``failure`` says why the adjustment is not a result (no convergence, a non-finite value, a
+    negative redundancy); empty when it is one. A failed adjustment never passes its global test.
     """
 
     poses: Pose
@@ -311,6 +314,11 @@ class BlockResult:
     iterations: int
     tests: tuple[ObservationTest, ...]
     variance_components: dict[str, float]
+    failure: str = ""
+
+    @property
+    def failed(self) -> bool:
+        return bool(self.failure)
 
     @property
     def sigma_position_m(self) -> FloatArray:

@@ -776,3 +776,40 @@ def test_disconnected_parts_can_each_be_adjusted_in_their_own_datum(
     assert info.value.code == 0, capsys.readouterr().err
     report = json.loads((out / "report.json").read_text())
     assert "disconnected part(s) each on its first station" in report["adjustment"]["datum"]
+
+
+def test_a_block_that_cannot_converge_is_exit_1_with_no_outputs_or_a_report_marked_failed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import json
+
+    sample = Path(__file__).parent.parent / "sample_data"
+    out = tmp_path / "out"
+    args = ["process", "-t", sample / "run_trajectory.txt", "-c", sample / "run_cloud.laz", "-o", out]
+    code, _, err = run_cli(args, capsys)
+    assert code == 0, err
+    assert (out / "corrected.laz").exists() and (out / "report.json").exists()
+    # Resumed with one iteration, too few to bring the stations from the trajectory's poses to
+    # the solution: one line, exit 1, and the earlier run's outputs are gone too.
+    one = tmp_path / "one_iteration.toml"
+    one.write_text("[block]\nmax_iterations = 1\n")
+    code, _, err = run_cli([*args, "--config", one, "--resume"], capsys)
+    lines = message_lines(err)
+    assert code == 1 and "Traceback" not in err
+    assert len(lines) == 1, err
+    assert re.search(r"the block adjustment failed: no convergence after 1 iterations \(sigma0 .*\); nothing "
+                     r"was written", lines[0]), lines[0]
+    assert result_files(out) == []
+    # With on_failure = "report": exit 1 still, and only a report marked failed.
+    report_toml = tmp_path / "report.toml"
+    report_toml.write_text('[block]\nmax_iterations = 1\non_failure = "report"\n')
+    code, _, err = run_cli([*args, "--config", report_toml, "--resume"], capsys)
+    lines = message_lines(err)
+    assert code == 1
+    assert len(lines) == 1 and "report.json in" in lines[0] and "marked failed" in lines[0], err
+    assert sorted(p.name for p in result_files(out)) == ["report.html", "report.json"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["adjustment"]["status"] == "failed"
+    assert report["adjustment"]["global_test_passed"] is False
+    assert report["adjustment"]["failure"] == "no convergence after 1 iterations"
+    assert "ADJUSTMENT FAILED" in (out / "report.html").read_text()

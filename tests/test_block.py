@@ -220,3 +220,48 @@ def test_drift_rates_measure_the_relative_motion_not_a_turned_walk():
     rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=()), prior,
                                  floor_share=0.25)
     assert rates.pos_m_per_s[1] == pytest.approx(0.25 * 3e-4)  # never below the share of the prior
+
+
+def _shifted(poses: Pose, shift) -> Pose:
+    return Pose(poses.quat_wxyz, poses.t_xyz + np.asarray(shift))
+
+
+def test_survey_coordinates_converge_as_fast_and_to_the_same_result():
+    # At UTM-sized coordinates (500 km, 5,400 km) a position's last bit is ~1e-9 m; the solver
+    # works about a local origin and stops on the cost, so it converges as the local network does.
+    rng = np.random.default_rng(3)
+    truth, approx, obs = network(rng)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    local = adjust_block(approx, obs, fixed, BlockConfig())
+    far = adjust_block(_shifted(approx, [500_000.0, 5_400_000.0, 300.0]), obs, fixed, BlockConfig())
+    assert not local.failed and not far.failed
+    assert far.iterations <= local.iterations + 1
+    np.testing.assert_allclose(far.poses.t_xyz - [500_000.0, 5_400_000.0, 300.0], local.poses.t_xyz, atol=1e-7)
+    assert far.sigma0 == pytest.approx(local.sigma0, rel=1e-6)
+
+
+def test_an_adjustment_that_does_not_converge_is_a_failure_never_a_pass():
+    rng = np.random.default_rng(4)
+    truth, approx, obs = network(rng)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    result = adjust_block(approx, obs, fixed, BlockConfig(max_iterations=1, data_snooping=False,
+                                                          variance_components=False))
+    assert result.failed and result.failure == "no convergence after 1 iterations"
+    assert not result.global_test_passed
+    assert not adjust_block(approx, obs, fixed, BlockConfig()).failed
+
+
+def test_the_damped_step_recovers_from_a_start_where_gauss_newton_overshoots():
+    # Headings 90 deg off: the linearisation is poor, a full Gauss-Newton step can raise the
+    # cost; the damped solver must still reach the truth (within the observations' noise).
+    rng = np.random.default_rng(5)
+    truth, approx, obs = network(rng, n=20)
+    turn = Pose.exp(np.tile([0, 0, 0, 0, 0, np.radians(90.0)], (len(approx), 1)))
+    start = Pose(np.concatenate([truth.quat_wxyz[:1], approx.compose(turn).quat_wxyz[1:]]), approx.t_xyz)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    result = adjust_block(start, obs, fixed, BlockConfig(max_iterations=100, data_snooping=False))
+    assert not result.failed
+    assert np.max(np.linalg.norm(result.poses.t_xyz - truth.t_xyz, axis=1)) < 0.05

@@ -17,6 +17,7 @@ component per observation kind so that reported standard deviations follow the r
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -140,14 +141,18 @@ def adjust_block(
     protected: set[int] = set()  # taken back after a rejection left the network undetermined
     variance_before = np.zeros(0)
     vce_rounds = 0
-    start = poses_initial
+    # Reduced to a local origin (the first station): at survey coordinates (UTM, 5e6 m) a pose's
+    # last bits are 1e-9 m, and the updates would never fall below the convergence threshold.
+    origin = poses_initial.t_xyz[0].copy()
+    observations = [_moved(o, -origin) for o in observations]
+    start = _moved_poses(poses_initial, -origin)
     progress.start("block adjustment", total=None, unit="iterations")
     while True:
         try:
             if last_round:
                 _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
-            poses, iterations, factor, N, free_index = _gauss_newton(start, observations, active, fixed,
-                                                                       weights, config, progress)
+            poses, iterations, factor, N, free_index, converged = _gauss_newton(start, observations, active, fixed,
+                                                                                  weights, config, progress)
             tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed,
                                                                       free_index, weights, factor, N, config)
         except EstimationError:
@@ -189,9 +194,11 @@ def adjust_block(
             continue
         break
     progress.finish()
+    poses = _moved_poses(poses, origin)
 
     sigma0 = float(np.sqrt(omega / redundancy)) if redundancy > 0 else float("nan")
-    passed = bool(redundancy <= 0 or omega <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
+    failure = _failure(converged, iterations, poses, omega, redundancy, Qxx_blocks)
+    passed = not failure and bool(redundancy <= 0 or omega <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
     factor_scale = sigma0**2 if (not passed and np.isfinite(sigma0)) else 1.0
     cov_xi = np.zeros((n, 6, 6))
     cov_xi[~fixed] = Qxx_blocks * factor_scale
@@ -216,7 +223,34 @@ def adjust_block(
         iterations=iterations,
         tests=tuple(all_tests),
         variance_components={k: 1.0 / w for k, w in weights.items() if (kinds == k).any()},
+        failure=failure,
     )
+
+
+def _failure(converged: bool, iterations: int, poses: Pose, omega: float, redundancy: float,
+             cov_blocks: FloatArray) -> str:
+    """Why the adjustment is not a result, in words; empty when it is one."""
+    if not converged:
+        return f"no convergence after {iterations} iterations"
+    if not (np.all(np.isfinite(poses.t_xyz)) and np.all(np.isfinite(poses.quat_wxyz))):
+        return "non-finite station poses"
+    if not np.isfinite(omega) or not np.all(np.isfinite(cov_blocks)):
+        return "non-finite residuals or covariances"
+    if redundancy < -1e-6:
+        return f"negative redundancy ({redundancy:.1f})"
+    return ""
+
+
+def _moved_poses(poses: Pose, shift: FloatArray) -> Pose:
+    return Pose(poses.quat_wxyz, poses.t_xyz + shift)
+
+
+def _moved(observation: RelativeObservation, shift: FloatArray) -> RelativeObservation:
+    """A station observation (an absolute pose) with the origin moved by ``shift``; relative
+    observations do not depend on the origin."""
+    if observation.kind is not ObservationKind.STATION:
+        return observation
+    return dataclasses.replace(observation, Z=_moved_poses(observation.Z, shift))
 
 
 def loose_parts(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> list[np.ndarray]:
@@ -251,7 +285,24 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray):
     return idx, obs_i, obs_j, station, Z, P, kinds
 
 
+def _cost(poses: Pose, obs_i: np.ndarray, obs_j: np.ndarray, Z: Pose, station: np.ndarray, P: FloatArray) -> float:
+    """The weighted sum of squared residuals ``sum e^T P e``."""
+    e = _residuals(poses, obs_i, obs_j, Z, station)
+    return float(np.einsum("ki,kij,kj->", e, P, e))
+
+
+# Marquardt's damping: the first try of every iteration is the undamped Gauss-Newton step; a step
+# that raises the cost is tried again with the normal matrix's diagonal raised by lambda times
+# itself, lambda growing tenfold, up to _MAX_DAMPING (then no descent is left: a minimum).
+_FIRST_DAMPING = 1e-4
+_MAX_DAMPING = 1e8
+
+
 def _gauss_newton(poses_initial, observations, active, fixed, weights, config, progress):
+    """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3). Converged when no unknown changes by
+    more than ``config.convergence`` or the cost falls by less than ``config.cost_tolerance`` of
+    itself; returns the poses, the iterations, the factor and normal matrix of the undamped
+    problem at the solution (for the covariances), the free-unknown index and whether it converged."""
     _, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
     P = P * np.array([weights[k] for k in kinds])[:, None, None]
     free_index = -np.ones(len(poses_initial), dtype=int)
@@ -260,23 +311,45 @@ def _gauss_newton(poses_initial, observations, active, fixed, weights, config, p
     col_i = free_index[obs_i]
     col_j = np.where(station, -1, free_index[obs_j])
     poses = poses_initial
+    cost = _cost(poses, obs_i, obs_j, Z, station, P)
     factor = N = None
+    converged = damped = False
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007  (the count is returned)
         e = _residuals(poses, obs_i, obs_j, Z, station)
         J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
         N, b = _assemble(n_free, col_i, col_j, J_i, J_j, P, e)
-        factor = factorize(N)
-        dx = factor.solve(b).reshape(-1, 6)
-        step = np.zeros((len(poses), 6))
-        step[~fixed] = dx
-        poses = poses.compose(Pose.exp(step))
+        lam = 0.0
+        while True:
+            damped = lam > 0.0
+            factor = factorize(N + lam * sp.diags(N.diagonal()) if damped else N)
+            dx = factor.solve(b).reshape(-1, 6)
+            step = np.zeros((len(poses), 6))
+            step[~fixed] = dx
+            trial = poses.compose(Pose.exp(step))
+            trial_cost = _cost(trial, obs_i, obs_j, Z, station, P)
+            if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + 1e-12):
+                break
+            lam = _FIRST_DAMPING if lam == 0.0 else 10.0 * lam
+            if lam > _MAX_DAMPING:
+                break
         progress.advance(1)
-        if np.max(np.abs(dx)) < config.convergence:
+        if lam > _MAX_DAMPING:  # no step lowers the cost: at a minimum if the gradient vanishes there
+            converged = bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
             break
-    else:
-        log.warning("block adjustment: no convergence after %d iterations", config.max_iterations)
-    return poses, iterations, factor, N, free_index
+        poses, fell = trial, cost - trial_cost
+        cost = trial_cost
+        if np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
+            converged = True
+            break
+    if not converged:
+        log.info("block adjustment: no convergence after %d iterations", iterations)
+    if damped:  # the covariances need the undamped normal matrix at the solution
+        e = _residuals(poses, obs_i, obs_j, Z, station)
+        J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
+        N, _ = _assemble(n_free, col_i, col_j, J_i, J_j, P, e)
+        factor = factorize(N)
+    return poses, iterations, factor, N, free_index, converged
 
 
 def _test_observations(poses, observations, active, fixed, free_index, weights, factor, N, config):

@@ -117,6 +117,9 @@ def _verdict(report: dict[str, Any]) -> str:
     passed = adj.get("global_test_passed")
     rejected = adj.get("rejected_observations") or []
     n_obs = adj.get("n_observations")
+    if adj.get("status") == "failed":
+        return _tag("div", _esc(f"ADJUSTMENT FAILED: {adj.get('failure') or DASH}. This run has no result: "
+                                "no station, link or correction of it may be used."), class_="verdict fail")
     test = {True: "global test passed", False: "global test FAILED"}.get(passed, "global test not available")
     level = "fail" if passed is False else ("warn" if rejected or passed is None else "pass")
     text = (f"\u03c3\u2080 = {_fmt(adj.get('sigma0'), 3)} \u2014 {test} (\u03b1 = {adj.get('alpha', DASH)}, "

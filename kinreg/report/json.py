@@ -103,6 +103,8 @@ def build_report(
         "config_toml": config_toml,
         "slicing": slicing,
         "adjustment": {
+            "status": _status(result),
+            "failure": result.failure,
             "datum": datum,
             "sigma0": result.sigma0,
             "redundancy": result.redundancy,
@@ -152,6 +154,27 @@ def build_report(
             "accuracy_m": references.accuracy_m, "n_ties": len(network.datum.ties),
             "planes": as_built(network.datum.ties, result.poses, planes, references)}}),
         "stage_cache": stage_cache,
+    }
+
+
+def _status(result: BlockResult) -> str:
+    """``failed`` (no result), ``rejected`` (global test failed: the sigmas are scaled by sigma0), ``passed``."""
+    return "failed" if result.failed else ("passed" if result.global_test_passed else "rejected")
+
+
+def build_failure_report(*, inputs: dict[str, Any], config_toml: str, result: BlockResult, datum: str,
+                         alpha: float) -> dict[str, Any]:
+    """``report.json`` of a run whose block adjustment failed: what went in and why it failed;
+    no stations, links or corrections (none of them is a result)."""
+    return {
+        "schema_version": REPORT_SCHEMA_VERSION,
+        "kinreg_version": kinreg.__version__,
+        "inputs": inputs,
+        "config_toml": config_toml,
+        "adjustment": {"status": _status(result), "failure": result.failure, "datum": datum,
+                       "sigma0": result.sigma0, "redundancy": result.redundancy, "alpha": alpha,
+                       "global_test_passed": False, "iterations": result.iterations,
+                       "n_observations": len(result.tests)},
     }
 
 

@@ -24,9 +24,11 @@ import numpy as np
 
 from kinreg.config import (
     KinregConfig,
+    OnFailure,
+    StaticConfig,
     format_toml,
 )
-from kinreg.errors import ConfigError
+from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.datum import build_network
 from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
@@ -35,7 +37,7 @@ from kinreg.io.cloud import open_cloud
 from kinreg.io.reference_planes import read_reference_planes
 from kinreg.progress import NullProgress, Progress
 from kinreg.report.html import render_html
-from kinreg.report.json import build_report, write_report_json
+from kinreg.report.json import build_failure_report, build_report, write_report_json
 from kinreg.report.tables import (
     format_links_csv,
     format_planes_csv,
@@ -44,10 +46,11 @@ from kinreg.report.tables import (
     stations_table,
     write_text,
 )
-from kinreg.run.executor import make_executor
+from kinreg.run.executor import ExecutorContext, make_executor
 from kinreg.run.output_folder import (
     RunCache,
     open_run_cache,
+    remove_outputs,
     sliced_run,
 )
 from kinreg.run.runs import (
@@ -60,6 +63,7 @@ from kinreg.run.runs import (
 )
 from kinreg.run.spill import QuasiStaticSequence, slice_quasi_static
 from kinreg.run.stages import (
+    AdjustedNetwork,
     adjust_with_measured_drift,
     counted,
     detect_all_planes,
@@ -243,7 +247,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
         links = link_stations_cached(stations, planes, config, static, progress, executor, folder)
         clock.lap("link")
         network = build_network(stations, planes, links, references, static, config)
-        adjusted = adjust_with_measured_drift(network, planes, static, config, progress, executor)
+        adjusted = adjust_or_fail(network, planes, static, config, progress, executor, out, outputs,
+                                  inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference))
         folder.count("block", computed=1)
         clock.lap("block")
         corrections = [run_correction(stations, adjusted.result, k, kinematic.trajectories[k], kinematic.jumps[k])
@@ -268,6 +273,26 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
     write_report_json(out / "report.json", report)  # last: it marks a finished run
     folder.finish()
     return ProcessSummary.from_report(out, report)
+
+
+def adjust_or_fail(network: Network, planes: list[tuple[Plane, ...]], static: StaticConfig | None,
+                   config: KinregConfig, progress: Progress, executor: ExecutorContext, out: Path,
+                   outputs: tuple[str, ...], report_inputs: dict[str, Any]) -> AdjustedNetwork:
+    """:func:`~kinreg.run.stages.adjust_with_measured_drift`; when the adjustment fails, the
+    folder's outputs (of an earlier run too) are removed, and with ``[block] on_failure =
+    "report"`` a ``report.json`` and ``report.html`` marked failed are written before the error."""
+    try:
+        return adjust_with_measured_drift(network, planes, static, config, progress, executor)
+    except AdjustmentFailedError as e:
+        remove_outputs(out, outputs)
+        if config.block.on_failure is not OnFailure.REPORT:
+            raise
+        report = build_failure_report(inputs=report_inputs, config_toml=format_toml(config), result=e.result,
+                                      datum=network.datum.description, alpha=config.block.alpha)
+        write_text(out / "report.html", render_html(report))
+        write_report_json(out / "report.json", report)
+        raise AdjustmentFailedError(e.reason.replace("nothing was written", f"report.json in {out} is marked "
+                                                     "failed, nothing else was written"), e.result) from None
 
 
 def write_tables(out: Path, report: dict[str, Any], network: Network, result: BlockResult,

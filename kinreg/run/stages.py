@@ -20,7 +20,7 @@ from kinreg.config import (
     PlanesConfig,
     StaticConfig,
 )
-from kinreg.errors import ConfigError
+from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import adjust_network, take_out_jumps
 from kinreg.estimate.drift import (
@@ -189,7 +189,7 @@ def adjust_with_measured_drift(
     network is adjusted again with the measured rates, so that the planes' window deformation and
     the stretches carried by the trajectory alone get honest sigmas."""
     prior_rates = DriftRates.from_config(config.drift)
-    result = adjust_network(network, prior_rates, config.block, progress)
+    result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
     if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
             rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
@@ -200,8 +200,18 @@ def adjust_with_measured_drift(
                                                    config.pairwise, progress, static, executor, rates))
     if rates.estimated:
         # Second pass: the trajectory's links (and the scans' window bias) with the measured rates.
-        result = adjust_network(network, rates, config.block, progress)
+        result = _checked(adjust_network(network, rates, config.block, progress))
     return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)
+
+
+def _checked(result: BlockResult) -> BlockResult:
+    """``result``, unless the adjustment failed: then :class:`AdjustmentFailedError`."""
+    if result.failed:
+        raise AdjustmentFailedError(
+            f"the block adjustment failed: {result.failure} (sigma0 {result.sigma0:.3g}, redundancy "
+            f"{result.redundancy:.0f}); nothing was written. Check the links in a `kinreg link` run, or set "
+            '[block] on_failure = "report" to keep a report marked failed', result)
+    return result
 
 
 # Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.
