@@ -34,13 +34,33 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 
 
-def scenario_config(name: str, seed: int | None = None):
+# Drift classes of the matrix: position / attitude error reached after the given time.
+MAGNITUDES = {
+    "small": (0.04, 0.25, 300.0),  # the sample's drift (post-processed SLAM)
+    "medium": (0.07, 0.4, 180.0),  # the held-out handheld case of issue #14
+    "large": (0.5, 2.0, 90.0),  # SLAM without loop closure
+}
+
+
+def scenario_config(name: str, seed: int | None = None, drift_model: str | None = None,
+                    magnitude: str | None = None):
     """The scenario's simulation configuration; ``seed`` replaces its run seed (walk, drift,
-    noise; the building stays) for repeated realisations."""
+    noise; the building stays) for repeated realisations; ``drift_model`` and ``magnitude``
+    (a key of :data:`MAGNITUDES`) replace its drift."""
     import dataclasses
 
+    from kinreg.simulation.drift import DriftModel
+
     cfg = _scenario_config(name)
-    return cfg if seed is None else dataclasses.replace(cfg, seed=seed)
+    if seed is not None:
+        cfg = dataclasses.replace(cfg, seed=seed)
+    drift = cfg.drift
+    if drift_model is not None:
+        drift = dataclasses.replace(drift, model=DriftModel(drift_model))
+    if magnitude is not None:
+        pos, rot, at = MAGNITUDES[magnitude]
+        drift = dataclasses.replace(drift, drift_pos_m_at_300s=pos, drift_rot_deg_at_300s=rot, at_s=at)
+    return dataclasses.replace(cfg, drift=drift)
 
 
 def _scenario_config(name: str):
@@ -52,11 +72,22 @@ def _scenario_config(name: str):
     if name == "sample":
         meta = json.loads((REPO / "sample_data" / "run_meta.json").read_text())
         return config_from_dict(meta["config"])
+    if name == "tilted":  # a 16-beam head tilted 45 deg, carried with a strong step sway, 180 s
+        from kinreg.simulation.walk import WalkConfig
+
+        return SimulationConfig(
+            seed=5, duration_s=180.0,
+            building=BuildingConfig(size_m=(24.0, 12.0, 3.0), n_rooms=3, seed=3),
+            sensor=SensorConfig(pulse_rate_hz=20_000.0, n_beams=16, line_rate_hz=10.0, head_rate_hz=0.0,
+                                head_tilt_deg=45.0, range_sigma_m=0.01),
+            walk=WalkConfig(sway_m=0.05, sway_deg=3.0),
+        )
     if name == "heldout":
         return SimulationConfig(
             seed=42,
             duration_s=300.0,
-            building=BuildingConfig(size_m=(30.0, 16.0, 3.2), n_rooms=4, layout=BuildingLayout.CENTRAL_CORRIDOR, seed=7),
+            building=BuildingConfig(size_m=(30.0, 16.0, 3.2), n_rooms=4, layout=BuildingLayout.CENTRAL_CORRIDOR,
+                                    seed=7),
             sensor=SensorConfig(pulse_rate_hz=16_000.0, n_beams=16, line_rate_hz=10.0, head_rate_hz=0.0,
                                 range_sigma_m=0.01),
             drift=DriftConfig(drift_pos_m_at_300s=0.06, drift_rot_deg_at_300s=0.35),
@@ -87,7 +118,8 @@ def point_to_plane_rms(run, xyz_iter) -> float:
     return float(np.sqrt(sq / n))
 
 
-def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Path | None = None) -> dict:
+def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Path | None = None,
+             drift_model: str | None = None, magnitude: str | None = None) -> dict:
     import laspy
 
     from kinreg.config import load_config
@@ -97,8 +129,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import simulate_run
 
-    cfg = scenario_config(name, seed)
-    if name == "sample" and seed is None:
+    cfg = scenario_config(name, seed, drift_model, magnitude)
+    if name == "sample" and seed is None and drift_model is None and magnitude is None:
         data = REPO / "sample_data"
     else:
         data = workdir / "data"
@@ -162,6 +194,9 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
                                  "max": float(st["s3d_mm"].max())},
         "normalised_error_rms": float(np.sqrt(np.mean(z**2))),
         "normalised_error_rms_per_axis": np.sqrt(np.mean(z**2, axis=0)).tolist(),
+        "normalised_error_ms_per_axis": np.mean(z**2, axis=0).tolist(),
+        "network_rotation_mdeg": float(np.degrees(np.linalg.norm(_rotvec(R))) * 1000),
+        "drift_model": cfg.drift.model.value, "magnitude": magnitude,
         "share_within_3_sigma": float(np.mean(np.abs(z) < 3)),
         "cloud_point_to_plane_rms_mm": {"corrected": rms_corrected * 1000, "true_trajectory": rms_truth * 1000,
                                         "input": rms_input * 1000,
@@ -173,6 +208,12 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
     }
 
 
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    from kinreg.geometry import matrix_to_quat, quat_to_rotvec
+
+    return quat_to_rotvec(matrix_to_quat(R))
+
+
 def pooled(results: list[dict]) -> dict:
     """Figures over repeated realisations of one scenario: one run's stations share most of their
     error (it accumulates along the walk), so a single run is a few independent samples at most;
@@ -182,6 +223,10 @@ def pooled(results: list[dict]) -> dict:
         "runs": len(results),
         "normalised_error_rms_pooled": float(np.sqrt(np.mean(z2))),
         "normalised_error_rms_per_run": [r["normalised_error_rms"] for r in results],
+        "normalised_error_rms_pooled_per_axis": np.sqrt(np.mean([r["normalised_error_ms_per_axis"] for r in results],
+                                                                axis=0)).tolist(),
+        "cloud_corrected_over_truth_worst_run": max(r["cloud_point_to_plane_rms_mm"]["corrected_over_truth"]
+                                                    for r in results),
         "position_error_after_rigid_fit_mm_rms_worst_run": max(r["position_error_after_rigid_fit_mm"]["rms"]
                                                                for r in results),
         "position_error_after_rigid_fit_mm_max_worst_run": max(r["position_error_after_rigid_fit_mm"]["max"]
@@ -196,20 +241,30 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="*", type=int, default=None,
                         help="repeat each scenario with these run seeds (walk, drift, noise) and pool the figures")
     parser.add_argument("--config", type=Path, default=None, help="kinreg configuration (default: the defaults)")
+    parser.add_argument("--drift-models", nargs="*", default=[None],
+                        help="world, slam, gnss-ins (default: the scenario's)")
+    parser.add_argument("--magnitudes", nargs="*", default=[None], help=f"drift classes: {', '.join(MAGNITUDES)}")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "accuracy.json")
     args = parser.parse_args()
     results, pools = [], {}
-    for name in args.scenario:
+    cells = [(n, m, g) for n in args.scenario for m in args.drift_models for g in args.magnitudes]
+    for name, model, magnitude in cells:
         runs = []
+        key = "/".join(str(x) for x in (name, model, magnitude) if x is not None)
         for seed in args.seeds or [None]:
             with tempfile.TemporaryDirectory(prefix=f"kinreg-eval-{name}-") as tmp:
-                res = evaluate(name, Path(tmp), seed, args.config)
-            print(json.dumps(res, indent=1), flush=True)
+                try:
+                    res = evaluate(name, Path(tmp), seed, args.config, model, magnitude)
+                except Exception as e:  # a failed run is a result of the matrix too
+                    res = {"scenario": name, "seed": seed, "drift_model": model, "magnitude": magnitude,
+                           "error": f"{type(e).__name__}: {e}"}
+            print(json.dumps(res), flush=True)
             runs.append(res)
         results += runs
-        if args.seeds:
-            pools[name] = pooled(runs)
-            print(json.dumps({name: pools[name]}, indent=1), flush=True)
+        good = [r for r in runs if "error" not in r]
+        if args.seeds and good:
+            pools[key] = {**pooled(good), "failed_runs": len(runs) - len(good)}
+            print(json.dumps({key: pools[key]}, indent=1), flush=True)
     args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
                                     "results": results, "pooled": pools}, indent=1) + "\n")
     print(f"written {args.out}")

@@ -155,6 +155,9 @@ class BlockConfig:
     max_variance_rounds: int = 10
     disconnected: Disconnected = Disconnected.STOP
     on_failure: OnFailure = OnFailure.STOP
+    # Match the pairs again from the adjusted poses and adjust again, until the linked pairs no
+    # longer change (loop closures across the accumulated drift), at most this often.
+    max_relink_rounds: int = 2
 
 
 class StaticDatum(enum.Enum):

@@ -145,7 +145,9 @@ def build_network(
     return Network(tuple(stations), tuple(links), Datum(fixed, tuple(datum_obs), "; ".join(datum), tuple(ties)))
 
 
-def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress) -> BlockResult:
+def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
+                   previous: BlockResult | None = None) -> BlockResult:
     """The block adjustment of ``network`` (:func:`~kinreg.estimate.block.adjust_block`), its
-    trajectory links weighted by ``rates``."""
-    return adjust_block(network.initial_poses, network.observations(rates), network.datum.fixed, config, progress)
+    trajectory links weighted by ``rates`` and coupled through a ``previous`` adjustment."""
+    return adjust_block(network.initial_poses, network.observations(rates, previous), network.datum.fixed, config,
+                        progress)

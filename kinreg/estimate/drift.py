@@ -26,13 +26,31 @@ def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
 @dataclass(frozen=True)
 class DriftRates:
     """How fast the trajectory drifts, per object axis: position [m/s] and rotation [rad/s],
-    plus the floors (short-term noise) [m], [rad]. ``sigma(dt)^2 = floor^2 + (rate dt)^2``."""
+    plus the floors (short-term noise) [m], [rad]. ``sigma(dt)^2 = floor^2 + (rate dt)^2``.
+
+    ``coupling`` says how the trajectory's attitude error enters its positions (METHOD.md
+    section 1), measured by :func:`estimate_drift_rates`: 0 where the relative motion is exact in
+    the scan's own frame (SLAM, dead reckoning, a rigid drift of the whole world: the position
+    integrates the heading error), 1 where the object-frame step is (GNSS/INS, a laser tracker:
+    the positions are measured apart from the attitude, so an attitude error turns each step
+    expressed in the scan's frame). The rates are those of the error left after the coupling.
+    """
 
     pos_m_per_s: np.ndarray
     rot_rad_per_s: np.ndarray
     pos_floor_m: float
     rot_floor_rad: float
     estimated: bool = False
+    coupling: float = 0.0
+
+    @property
+    def regime(self) -> str:
+        """The coupling in words, for the report."""
+        if self.coupling < 0.25:
+            return "relative motion exact in the scan frame (SLAM-like)"
+        if self.coupling > 0.75:
+            return "positions apart from attitude (GNSS/INS-like)"
+        return "mixed"
 
     @classmethod
     def from_config(cls, drift: DriftConfig) -> DriftRates:
@@ -116,13 +134,17 @@ def with_window_deformation(planes: Sequence[Plane], T_obj_scan: Pose, rates: Dr
 
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates,
                          floor_share: float = 1.0) -> DriftRates:
-    """The drift velocity measured by the adjustment: the error of the trajectory's relative motion
-    between consecutive quasi-static stations (the adjusted step against the initial one turned by
-    the first station's correction; the change of the correction's rotation) over their time difference,
-    RMS per object axis (:func:`_rms_rate`), less the adjustment's own noise in that change (the covariance of the
+    """The trajectory's error model measured by the adjustment, from consecutive quasi-static
+    stations of each run: the adjusted step ``y`` against the two predictions of the trajectory's
+    step, ``u`` (its step in the scan frame was right: the initial step turned by the first
+    station's correction) and ``w`` (its object-frame step was right: the initial step itself).
+    The coupling ``kappa`` (:class:`DriftRates`) is the least-squares share of ``w`` in
+    ``y = u + kappa (w - u)``, within [0, 1]; the position rate is the RMS per object axis of what
+    is left over the time difference (:func:`_rms_rate`), the rotation rate that of the change of
+    the correction's rotation, each less the adjustment's own noise in it (the covariance of the
     adjusted relative pose, from the block's trajectory-link tests). The estimate is bounded below
-    by ``floor_share`` times the prior rates (1: it only ever raises them); with too few
-    stations to measure, the prior is returned.
+    by ``floor_share`` times the prior rates (1: it only ever raises them); with too few stations
+    to measure, the prior is returned.
 
     Smooth drift is invisible in residuals (consecutive trajectory links err alike), but the
     corrections themselves show it wherever planes fix the stations; where no plane fixes a
@@ -137,7 +159,7 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     rot = quat_to_rotvec(correction.quat_wxyz)
     R_corr, R_adj = correction.rotation_matrix, result.poses.rotation_matrix
     p_adj, p_init = result.poses.t_xyz, result.poses_initial.t_xyz
-    pos_v, rot_v, pos_noise, rot_noise = [], [], [], []
+    y, u, w, dts, rot_v, pos_noise, rot_noise = [], [], [], [], [], [], []
     for a, b in itertools.pairwise(seq):
         if stations[a].run != stations[b].run:
             continue  # consecutive stations of the same run only: runs are not tied by a trajectory
@@ -146,17 +168,23 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
         R = R_adj[a]
         pos_noise.append(np.diag(R @ cov[:3, :3] @ R.T) / dt**2)
         rot_noise.append(np.diag(R @ cov[3:, 3:] @ R.T) / dt**2)
-        # The relative motion's error, not the change of the shifts: a rotation error already
-        # there (C_a) turns the whole step, which is no drift between the two stations.
-        pos_v.append(((p_adj[b] - p_adj[a]) - R_corr[a] @ (p_init[b] - p_init[a])) / dt)
+        step = p_init[b] - p_init[a]
+        y.append(p_adj[b] - p_adj[a])
+        u.append(R_corr[a] @ step)
+        w.append(step)
+        dts.append(dt)
         rot_v.append((rot[b] - rot[a]) / dt)
-    if len(pos_v) < 2:
+    if len(y) < 2:
         return prior
-    pos_rate = _rms_rate(np.array(pos_v), np.array(pos_noise))
+    Y, U, W = np.array(y), np.array(u), np.array(w)
+    spread = float(np.sum((W - U) ** 2))
+    kappa = float(np.clip(np.sum((W - U) * (Y - U)) / spread, 0.0, 1.0)) if spread > 1e-12 else 0.0
+    pos_v = (Y - U - kappa * (W - U)) / np.array(dts)[:, None]
+    pos_rate = _rms_rate(pos_v, np.array(pos_noise))
     rot_rate = _rms_rate(np.array(rot_v), np.array(rot_noise))
     return DriftRates(np.maximum(floor_share * prior.pos_m_per_s, pos_rate),
                       np.maximum(floor_share * prior.rot_rad_per_s, rot_rate),
-                      prior.pos_floor_m, prior.rot_floor_rad, estimated=True)
+                      prior.pos_floor_m, prior.rot_floor_rad, estimated=True, coupling=kappa)
 
 
 def _rms_rate(velocity: np.ndarray, noise: np.ndarray) -> np.ndarray:

@@ -21,8 +21,9 @@ from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticCon
 from kinreg.estimate.drift import DriftRates, window_bias_covariance
 from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.estimate.pairwise import adjust_pair
-from kinreg.geometry import Pose, pose_sigmas
+from kinreg.geometry import Pose, pose_sigmas, skew
 from kinreg.types import (
+    BlockResult,
     Link,
     LinkStatus,
     ObservationKind,
@@ -70,13 +71,16 @@ def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
 def link_pair(
     i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
+    sigma_prior: np.ndarray | None = None,
 ) -> Link | None:
     """Match and adjust one candidate pair; ``None`` where too few planes match. The planes'
     covariances are expected to carry the drift inside their windows already
-    (:func:`with_window_deformation`, as :func:`link_stations` passes them)."""
+    (:func:`with_window_deformation`, as :func:`link_stations` passes them). The prior is the
+    stations' relative pose with ``sigma_prior`` (6,), by default the drift's over their time
+    difference."""
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
     matches = match_planes(planes_i, planes_j, T_prior, matching)
-    sigma = None
+    sigma = sigma_prior
     if matching.max_jump_m > 0 and _directions(matches, planes_i) < 3:
         # Robust step: the trajectory may have jumped between the two scans, so that the planes
         # across the jump no longer match (those along it still may).
@@ -115,11 +119,17 @@ def _dt(a: Station, b: Station) -> float:
 
 
 def block_observations(
-    stations: Sequence[Station], links: Sequence[Link], rates: DriftRates
+    stations: Sequence[Station], links: Sequence[Link], rates: DriftRates, previous: BlockResult | None = None,
 ) -> list[RelativeObservation]:
     """The block's observations: every usable link's plane-only information, and the trajectory's
     relative pose between consecutive quasi-static stations of the same run, once, weighted by the
-    drift rates (plus both scans' window bias: the block's unknowns are scan frames)."""
+    drift rates (plus both scans' window bias: the block's unknowns are scan frames).
+
+    With a ``previous`` adjustment and a coupling ``kappa`` (:class:`DriftRates`), the trajectory's
+    step enters as ``(1 - kappa)`` times its step in its own scan frame plus ``kappa`` times its
+    object-frame step turned into the previously adjusted scan frame (whose attitude uncertainty is
+    added to the link's covariance): a trajectory whose positions are measured apart from its
+    attitude (GNSS/INS) then no longer carries its attitude error into the links."""
     observations = [
         RelativeObservation(ObservationKind.PLANES, link.scan_i, link.scan_j, link.T_i_j_planes,
                             link.info_planes, link.rank)
@@ -134,6 +144,9 @@ def block_observations(
         Z = sa.T_obj_scan.inverse().compose(sb.T_obj_scan)
         cov = (rates.covariance(_dt(sa, sb), sa.T_obj_scan) + window_bias_covariance(sa, sa.T_obj_scan, rates)
                + window_bias_covariance(sb, sa.T_obj_scan, rates))
+        if previous is not None and rates.coupling > 0.0:
+            Z, cov = _coupled(Z, cov, sb.T_obj_scan.t_xyz - sa.T_obj_scan.t_xyz, previous.poses[a],
+                              previous.cov_xi[a], rates.coupling)
         observations.append(RelativeObservation(ObservationKind.TRAJECTORY, a, b, Z, np.linalg.inv(cov), 6))
     return observations
 
@@ -162,9 +175,22 @@ class Network:
     def initial_poses(self) -> Pose:
         return Pose.stack([s.T_obj_scan for s in self.stations])
 
-    def observations(self, rates: DriftRates) -> list[RelativeObservation]:
-        """The block's observations with the trajectory's links weighted by ``rates``, and the datum's."""
-        return block_observations(self.stations, self.links, rates) + list(self.datum.observations)
+    def observations(self, rates: DriftRates, previous: BlockResult | None = None) -> list[RelativeObservation]:
+        """The block's observations with the trajectory's links weighted by ``rates`` (and coupled
+        through a ``previous`` adjustment, :func:`block_observations`), and the datum's."""
+        return block_observations(self.stations, self.links, rates, previous) + list(self.datum.observations)
 
     def with_links(self, links: Sequence[Link]) -> Network:
         return replace(self, links=tuple(links))
+
+
+def _coupled(Z: Pose, cov: np.ndarray, step_obj: np.ndarray, T_adjusted: Pose, cov_adjusted: np.ndarray,
+             kappa: float) -> tuple[Pose, np.ndarray]:
+    """A trajectory link whose translation is ``kappa`` parts the object-frame step turned into the
+    adjusted scan frame (see :func:`block_observations`), with that frame's attitude uncertainty."""
+    step_adjusted = T_adjusted.rotation_matrix.T @ step_obj
+    t = (1.0 - kappa) * Z.t_xyz + kappa * step_adjusted
+    J = kappa * skew(step_adjusted)  # d(R^T s)/d(phi) for a right perturbation R exp(phi)
+    cov = cov.copy()
+    cov[:3, :3] += J @ cov_adjusted[3:, 3:] @ J.T
+    return Pose(Z.quat_wxyz, t), cov

@@ -163,6 +163,7 @@ def _drift_and_links(report: dict[str, Any]) -> str:
         ("drift position per axis [mm/s]", " / ".join(_fmt(v, 2) for v in pos) or DASH),
         ("drift rotation per axis [mdeg/s]", " / ".join(_fmt(v, 1) for v in rot) or DASH),
         ("drift rates", source),
+        ("attitude coupling", f"{_fmt(rates.get('coupling'), 2)}: {rates.get('regime') or DASH}"),
     ]
     components = adj.get("variance_components") or {}
     rows += [(f"variance component {k}", _fmt(v, 3)) for k, v in components.items()]

@@ -117,6 +117,8 @@ def build_report(
                 "estimated": drift_rates.estimated,
                 "pos_mm_per_s": (np.asarray(drift_rates.pos_m_per_s) * 1000).tolist(),
                 "rot_mdeg_per_s": (np.degrees(drift_rates.rot_rad_per_s) * 1000).tolist(),
+                "coupling": drift_rates.coupling,
+                "regime": drift_rates.regime,
             },
             "n_observations": len(result.tests),
             "rejected_observations": rejected,

@@ -34,7 +34,7 @@ from kinreg.estimate.drift import (
 from kinreg.estimate.network import Network, link_pair, station_pairs
 from kinreg.estimate.planes import detect_planes
 from kinreg.estimate.reference import to_reference_frame
-from kinreg.geometry import Pose
+from kinreg.geometry import Pose, pose_sigmas
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
 from kinreg.progress import NullProgress, Progress
@@ -191,17 +191,26 @@ def adjust_with_measured_drift(
     prior_rates = DriftRates.from_config(config.drift)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
-    if np.any(rates.pos_m_per_s > 1.2 * prior_rates.pos_m_per_s) or np.any(
-            rates.rot_rad_per_s > 1.2 * prior_rates.rot_rad_per_s):
-        # The planes of a scan are deformed by the drift inside its window: faster than the prior,
-        # by more than their covariances say, so the pairs are linked again with the measured rates.
-        log.info("drift faster than the prior: linking again with the measured rates")
-        network = network.with_links(link_stations(network.stations, planes, config.matching, config.drift,
-                                                   config.pairwise, progress, static, executor, rates))
-    if rates.estimated:
-        # Second pass: the trajectory's links (and the scans' window bias) with the measured rates.
-        result = _checked(adjust_network(network, rates, config.block, progress))
+    for _ in range(config.block.max_relink_rounds):
+        # Matched again from the adjusted poses: pairs that the trajectory's drift kept apart or
+        # out of the gates (loop closures) are linked now, and the planes' window deformation
+        # follows the measured rates. Until the set of linked pairs no longer changes.
+        links = link_stations(network.stations, planes, config.matching, config.drift, config.pairwise, progress,
+                              static, executor, rates, adjusted=result)
+        same = _linked_pairs(links) == _linked_pairs(network.links)
+        log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
+        network = network.with_links(links)
+        result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
+        rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
+        if same:
+            break
+    # The last pass: the trajectory's links coupled with the measured coupling and rates.
+    result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)
+
+
+def _linked_pairs(links: Sequence[Link]) -> set[tuple[int, int]]:
+    return {(link.scan_i, link.scan_j) for link in links if link.status is LinkStatus.OK}
 
 
 def _checked(result: BlockResult) -> BlockResult:
@@ -220,8 +229,9 @@ _PAIRS_PER_TASK = 64
 
 def _link_batch(task: tuple) -> list[Link | None]:
     """A batch of pairs (a top-level function: it runs on worker processes)."""
-    pairs, stations, planes, configs = task
-    return [link_pair(i, j, stations[i], stations[j], planes[i], planes[j], *configs) for i, j in pairs]
+    pairs, stations, planes, (matching, drift, pairwise, static), sigmas = task
+    return [link_pair(i, j, stations[i], stations[j], planes[i], planes[j], matching, drift, pairwise, static,
+                      sigma_prior=None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
 
 
 def link_stations(
@@ -234,6 +244,7 @@ def link_stations(
     static: StaticConfig | None = None,
     executor: ExecutorContext | None = None,
     rates: DriftRates | None = None,
+    adjusted: BlockResult | None = None,
 ) -> list[Link]:
     """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
     batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
@@ -241,9 +252,19 @@ def link_stations(
     station has no trajectory between them: its prior comes from ``static.prior_sigma_*``; nor has
     a pair of two runs: its prior comes from ``pairwise.cross_run_prior_sigma_*``.
     ``rates`` are the drift rates for the planes' window deformation (default: the prior's).
+    With an ``adjusted`` network the pairs are found, matched and given their prior from its
+    poses (the prior's sigmas: twice the stations' adjusted sigmas combined, with the drift's
+    floors), so that loop closures across an accumulated drift come within the gates.
     Returns the links in pair order, whatever the number of workers.
     """
     progress = progress or NullProgress()
+    sigmas = None
+    if adjusted is not None:
+        stations = [replace(s, T_obj_scan=adjusted.poses[k]) for k, s in enumerate(stations)]
+        floor = pose_sigmas((rates or DriftRates.from_config(drift)).pos_floor_m,
+                            (rates or DriftRates.from_config(drift)).rot_floor_rad)
+        own = np.sqrt(np.maximum(np.diagonal(adjusted.cov_xi, axis1=1, axis2=2), 0.0))
+        sigmas = 2.0 * np.hypot(own, floor / np.sqrt(2.0))
     pairs = station_pairs(stations, matching, static)
     # Once per station, not once per pair: matching does not look at the covariances.
     rates = rates or DriftRates.from_config(drift)
@@ -255,7 +276,8 @@ def link_stations(
     def task(batch: list[tuple[int, int]]) -> tuple:
         # Each task gets only the stations and planes of its own pairs.
         used = {k for pair in batch for k in pair}
-        return batch, {k: stations[k] for k in used}, {k: planes[k] for k in used}, configs
+        return (batch, {k: stations[k] for k in used}, {k: planes[k] for k in used}, configs,
+                None if sigmas is None else {k: sigmas[k] for k in used})
 
     results = parallel_map(_link_batch, (task(b) for b in batches), executor or in_process(), progress)
     progress.finish()

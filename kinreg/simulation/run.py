@@ -18,7 +18,7 @@ from kinreg.geometry import (
     Pose,
     quat_to_rotvec,
 )
-from kinreg.simulation.drift import DriftConfig, _offset_trajectory, apply_drift, make_drift
+from kinreg.simulation.drift import DriftConfig, DriftModel, _offset_trajectory, drifted_trajectory
 from kinreg.simulation.scene import BuildingConfig, BuildingLayout, Scene, ScenePlane, make_building
 from kinreg.simulation.sensor import (
     SensorConfig,
@@ -81,6 +81,8 @@ def config_from_dict(data: dict[str, Any]) -> SimulationConfig:
             sub = dict(value)
             if key == "building" and "layout" in sub:
                 sub["layout"] = BuildingLayout(sub["layout"])
+            if key == "drift" and "model" in sub:
+                sub["model"] = DriftModel(sub["model"])
             kwargs[key] = sections[key](**{k: tuple(v) if isinstance(v, list) else v for k, v in sub.items()})
         else:
             kwargs[key] = tuple(value) if isinstance(value, list) else value
@@ -173,8 +175,7 @@ def simulate_run(config: SimulationConfig | None = None) -> SimulatedRun:
         raise ValueError(f"duration_s must exceed 2 * pause_s + 4 s, got {cfg.duration_s}")
     scene = make_building(cfg.building)
     truth_local = make_walk(scene, cfg.walk, cfg.duration_s, cfg.t0_s, _rng(cfg.seed, 1))
-    drift = make_drift(truth_local.stamps_s, truth_local.poses.t_xyz[0], cfg.drift, _rng(cfg.seed, 2))
-    slam_local = apply_drift(truth_local, drift)
+    slam_local, drift = drifted_trajectory(truth_local, cfg.drift, _rng(cfg.seed, 2))
     origin = np.asarray(cfg.origin_xyz, dtype=np.float64)
     # The drift in the output frame: D' = O D O^-1 (same rotation, pivot moved with the origin).
     drift_out = Pose(drift.quat_wxyz, drift.t_xyz + origin - np.einsum("nij,j->ni", drift.rotation_matrix,
@@ -201,7 +202,10 @@ def _simulate_block(run: SimulatedRun, index: int, first_index: int) -> CloudBlo
         elev = np.radians(np.linspace(-sen.beam_spread_deg / 2, sen.beam_spread_deg / 2, sen.n_beams))[beam]
     else:
         elev = np.zeros(len(k))
-    d_nom = _head_directions(theta, elev, psi)
+    # The head's spin axis tilted forward about the platform's y axis (a head mounted at 45 deg).
+    tilt = math.radians(sen.head_tilt_deg)
+    R_tilt = np.array([[math.cos(tilt), 0.0, math.sin(tilt)], [0.0, 1.0, 0.0], [-math.sin(tilt), 0.0, math.cos(tilt)]])
+    d_nom = _head_directions(theta, elev, psi) @ R_tilt.T
     blind_axis = np.asarray(sen.blind_axis_p, dtype=np.float64)
     blind_axis /= np.linalg.norm(blind_axis)
     seen = d_nom @ blind_axis < math.cos(math.radians(sen.blind_cone_deg))
@@ -210,7 +214,7 @@ def _simulate_block(run: SimulatedRun, index: int, first_index: int) -> CloudBlo
     # The laser goes where the encoders do not quite say: cast along the perturbed direction,
     # report along the nominal one.
     sa = math.radians(sen.angle_sigma_deg)
-    d_true = _head_directions(theta + sa * rng.standard_normal(n), elev + sa * rng.standard_normal(n), psi)
+    d_true = _head_directions(theta + sa * rng.standard_normal(n), elev + sa * rng.standard_normal(n), psi) @ R_tilt.T
     # Ray casting in building coordinates from the interpolated TRUE trajectory.
     origin = run.origin
     truth = run.truth

@@ -44,6 +44,7 @@ class SensorConfig:
     max_range_m: float = 30.0
     min_range_m: float = 0.5
     intensity_noise: float = 0.03  # relative
+    head_tilt_deg: float = 0.0  # the head's spin axis tilted forward from the platform's z axis
 
 
 @dataclass(frozen=True)
