@@ -30,6 +30,7 @@ from kinreg.errors import ConfigError, EstimationError
 from kinreg.executor import ExecutorContext, in_process, make_executor, parallel_map
 from kinreg.geometry import Pose
 from kinreg.io.atomic import check_writable_target
+from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
 from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
@@ -108,7 +109,8 @@ def read_and_slice(
 ) -> tuple[Trajectory, int, QuasiStaticSequence]:
     """The input trajectory, the cloud's point count, and the cloud sliced into quasi-static scans."""
     trajectory = read_input_trajectory(trajectory_path, config.input)
-    with open_cloud(cloud_path) as cloud:
+    check_inputs([cloud_path], [trajectory], None, config.input)
+    with open_cloud(cloud_path, times=time_filter(config.input)) as cloud:
         sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
                                       progress=progress)
         return trajectory, cloud.info.n_points, sequence
@@ -495,6 +497,7 @@ def process(
     for r in runs:
         if r.cloud.suffix.lower() not in (".las", ".laz"):
             raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", r.cloud)
+    check_inputs([r.cloud for r in runs], trajectories, inputs.static, config.input)
     with contextlib.ExitStack() as stack:
         sliced = [stack.enter_context(sliced_run(run, r.trajectory, r.cloud, trajectories[k], config, progress, k))
                   for k, r in enumerate(runs)]
@@ -533,6 +536,7 @@ def process(
         # The large outputs are keyed by what they are made of; one still in the folder is kept.
         T_obj_cloud = None if references is None else references.T_ref_traj
         keys = {cloud_name: run.key("output", cloud_name, r.cloud, config.input.chunk_points, T_obj_cloud,
+                                    config.input.cloud_time_offset_s,
                                     *dataclass_parts(correction))
                 for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True)}
         n_scans = sum(len(slices) for slices in sliced)
@@ -545,7 +549,8 @@ def process(
         for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True):
             if cloud_name not in current:
                 write_corrected_las(r.cloud, out / cloud_name, correction, config.input.chunk_points,
-                                    overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud)
+                                    overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud,
+                                    time_offset_s=config.input.cloud_time_offset_s)
                 run.record_output(cloud_name, keys[cloud_name])
             run.count("corrected cloud", reused=int(cloud_name in current), computed=int(cloud_name not in current))
         lap("corrected cloud")
