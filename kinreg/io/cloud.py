@@ -125,6 +125,7 @@ class CloudReader(Protocol):
 
     path: Path
     info: CloudInfo
+    times: TimeFilter
 
     def iter_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[CloudChunk]: ...
 

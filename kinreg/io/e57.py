@@ -123,6 +123,8 @@ class E57ScanHeader:
 
 def _reason(exc: BaseException) -> str:
     """One line from a libE57Format exception (its message spans a dozen lines of debug info)."""
+    if isinstance(exc, UnicodeDecodeError):  # the library's message quotes damaged bytes
+        return "damaged data (the library's message is not readable text)"
     text = str(exc)
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
     os_error = re.search(r"error='([^']*)'", text)

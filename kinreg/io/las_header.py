@@ -21,6 +21,8 @@ import struct
 from dataclasses import dataclass
 from pathlib import Path
 
+import lazrs
+
 from kinreg.errors import CloudError
 
 HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235, 4: 375}
@@ -28,6 +30,8 @@ VLR_HEADER_SIZE = 54
 EVLR_HEADER_SIZE = 60
 # Smallest record of each point format (LAS 1.4 table 7 ff.); extra bytes may follow.
 POINT_RECORD_SIZES = {0: 20, 1: 28, 2: 26, 3: 34, 4: 57, 5: 63, 6: 30, 7: 36, 8: 38, 9: 59, 10: 67}
+# The LAS version that introduced each point format.
+MIN_MINOR_VERSION = {0: 0, 1: 0, 2: 2, 3: 2, 4: 3, 5: 3, 6: 4, 7: 4, 8: 4, 9: 4, 10: 4}
 LASZIP_USER_ID = "laszip encoded"
 LASZIP_RECORD_ID = 22204
 VARIABLE_CHUNK_SIZE = 0xFFFFFFFF
@@ -50,6 +54,11 @@ class LasFileFacts:
     offset_to_points: int
     n_chunks: int | None = None
     chunk_size: int | None = None
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    return text[0] if text else type(e).__name__
 
 
 def _fail(reason: str, path: Path) -> CloudError:
@@ -103,8 +112,9 @@ def _check(f, size: int, p: Path) -> LasFileFacts:  # type: ignore[no-untyped-de
     point_format = format_byte & 0x3F
     if point_format not in POINT_RECORD_SIZES:
         raise _fail(f"point format {point_format} is not a LAS point format (0-10)", p)
-    if point_format >= 6 and minor < 4:
-        raise _fail(f"point format {point_format} needs LAS 1.4, the header says 1.{minor}", p)
+    if minor < MIN_MINOR_VERSION[point_format]:
+        raise _fail(f"point format {point_format} needs LAS 1.{MIN_MINOR_VERSION[point_format]} or later, "
+                    f"the header says 1.{minor}", p)
     if record_length < POINT_RECORD_SIZES[point_format]:
         raise _fail(f"point record length {record_length} is shorter than point format {point_format}'s "
                     f"{POINT_RECORD_SIZES[point_format]} bytes", p)
@@ -190,14 +200,34 @@ def _check_laz(f, size: int, p: Path, facts: LasFileFacts, laszip: bytes | None,
     if version != 0 or n_chunks == 0 or n_chunks > compressed_bytes:
         raise _fail(f"the chunk table (version {version}, {n_chunks:,} chunks) does not fit the "
                     f"{compressed_bytes:,} bytes of compressed points (truncated or damaged?)", p)
+    n = facts.n_points
     if chunk_size != VARIABLE_CHUNK_SIZE:
         if chunk_size == 0:
             raise _fail("the LASzip VLR gives a chunk size of 0 points", p)
-        n = facts.n_points
         if not (n_chunks - 1) * chunk_size < n <= n_chunks * chunk_size:
             raise _fail(f"the header's point count {n:,} does not fit the chunk table ({n_chunks:,} chunks of "
                         f"{chunk_size:,} points)", p)
-    elif n_chunks > facts.n_points:
-        raise _fail(f"the chunk table lists {n_chunks:,} chunks for {facts.n_points:,} points", p)
+    elif n_chunks > n:
+        raise _fail(f"the chunk table lists {n_chunks:,} chunks for {n:,} points", p)
+    # The entries are arithmetic-coded: lazrs decodes them (safe now that their number is bounded).
+    f.seek(start)
+    try:
+        table = lazrs.read_chunk_table(f, lazrs.LazVlr(laszip))
+    except (lazrs.LazrsError, OSError, ValueError, MemoryError, OverflowError) as e:
+        raise _fail(f"cannot read the chunk table (truncated or damaged?): {_first_line(e)}", p) from None
+    if sum(int(b) for _, b in table) != compressed_bytes:
+        raise _fail(f"the chunk table's {n_chunks:,} chunks make {sum(int(b) for _, b in table):,} bytes, the "
+                    f"compressed points {compressed_bytes:,} (damaged?)", p)
+    if chunk_size == VARIABLE_CHUNK_SIZE:
+        stored = sum(int(c) for c, _ in table)
+    elif facts.point_format >= 6:
+        # Layered chunks (point formats 6-10) start with the first point raw, then its point count.
+        last = start + 8 + sum(int(b) for _, b in table[:-1]) + facts.record_length
+        (last_count,) = struct.unpack("<I", _read_at(f, last, 4, size, "last chunk", p))
+        stored = (n_chunks - 1) * chunk_size + last_count
+    else:
+        stored = n  # formats 0-5 store no count in the chunks: the check above is all there is
+    if stored != n:
+        raise _fail(f"the header says {n:,} points, the compressed chunks hold {stored:,}", p)
     return LasFileFacts(facts.version, facts.point_format, facts.record_length, facts.n_points, True,
                         facts.offset_to_points, n_chunks, chunk_size)
