@@ -213,7 +213,7 @@ def write_e57(path: Path, n_scans: int = 1, n_points: int = 200, bounds_as_strin
                 entry.set("pose", p)
             bounds = libe57.StructureNode(imf)
             for a, column in zip("xyz", points_xyz.T, strict=True):
-                for m, value in (("Minimum", float(column.min())), ("Maximum", float(column.max()))):
+                for m, value in (("Minimum", float(np.nanmin(column))), ("Maximum", float(np.nanmax(column)))):
                     node = libe57.StringNode(imf, f"{value}") if bounds_as_string else libe57.FloatNode(imf, value)
                     bounds.set(f"{a}{m}", node)
             entry.set("cartesianBounds", bounds)

@@ -161,7 +161,7 @@ def _number(node: Any) -> float:
     if isinstance(node, libe57.ScaledIntegerNode):
         return float(node.scaledValue())
     if not isinstance(node, libe57.FloatNode | libe57.IntegerNode):
-        raise ValueError(f"'{node.elementName()}' is a {type(node).__name__}, not a number")
+        raise ValueError(f"'{node.pathName()}' is a {type(node).__name__}, not a number")
     return float(node.value())
 
 

@@ -24,6 +24,7 @@ GPS_UNIX_EPOCH_S = 315_964_800.0  # 1980-01-06 minus 1970-01-01, in seconds
 GPS_ADJUSTED_OFFSET_S = 1e9  # GPS adjusted standard time = GPS time - 1e9 s
 GPS_WEEK_S = 604_800.0
 MAX_LEAP_S = 18  # GPS - UTC since 2017-01-01
+MIN_LEAP_S = 10  # GPS - UTC since 1994; smaller counts predate kinematic laser scanning
 # Outside share of the cloud's times an offset must leave at most, and beat the unshifted share by.
 _FIT_SHARE = 0.001
 # Unshifted share outside the trajectory from which a fitting recognised offset is reported.
@@ -60,15 +61,15 @@ def recognised_offsets(cloud_mid_s: float, trajectory_mid_s: float) -> list[tupl
     (-18.0, 'GPS-UTC leap seconds')
     """
     found: list[tuple[float, str]] = []
-    leaps = sorted(range(1, MAX_LEAP_S + 1), key=lambda n: MAX_LEAP_S - n)
-    for n in leaps:
+    leaps = sorted(range(MIN_LEAP_S, MAX_LEAP_S + 1), key=lambda n: MAX_LEAP_S - n)
+    for n in [*leaps, 0]:  # 0: a conversion that ignored the leap seconds
         found += [(-float(n), "GPS-UTC leap seconds"), (float(n), "UTC-GPS leap seconds")]
-    for n in leaps[:1] + list(range(0, MAX_LEAP_S)):
+    for n in [*leaps, 0]:  # 0: a conversion that ignored the leap seconds
         unix_minus_gps = GPS_UNIX_EPOCH_S - n
         found += [(unix_minus_gps, "GPS seconds to Unix"), (-unix_minus_gps, "Unix seconds to GPS")]
     found += [(GPS_ADJUSTED_OFFSET_S, "GPS adjusted standard time to GPS time"),
               (-GPS_ADJUSTED_OFFSET_S, "GPS time to GPS adjusted standard time")]
-    for n in leaps[:1] + list(range(0, MAX_LEAP_S)):
+    for n in [*leaps, 0]:  # 0: a conversion that ignored the leap seconds
         found += [(GPS_ADJUSTED_OFFSET_S + GPS_UNIX_EPOCH_S - n, "GPS adjusted standard time to Unix"),
                   (-(GPS_ADJUSTED_OFFSET_S + GPS_UNIX_EPOCH_S - n), "Unix to GPS adjusted standard time")]
     # GPS week seconds on one side: whole weeks plus one of the bases above.
@@ -138,6 +139,9 @@ def check_cloud_times(
         sample = sample_times()
     n_bad = int(np.count_nonzero(~np.isfinite(sample)))
     times.check_share(n_bad, len(sample), Path(cloud_path), sampled=True)
+    finite = sample[np.isfinite(sample)]
+    if len(finite) > 1 and finite.min() == finite.max():
+        raise CloudError(f"all sampled point times are equal ({finite[0]:.6f} s): no time to slice by", cloud_path)
     if not check_time_base:
         return
     problem = diagnose_time_base(sample, (trajectory.t_start_s, trajectory.t_end_s), max_dropped_share)
