@@ -62,7 +62,7 @@ def recognised_offsets(cloud_mid_s: float, trajectory_mid_s: float) -> list[tupl
     """
     found: list[tuple[float, str]] = []
     leaps = sorted(range(MIN_LEAP_S, MAX_LEAP_S + 1), key=lambda n: MAX_LEAP_S - n)
-    for n in [*leaps, 0]:  # 0: a conversion that ignored the leap seconds
+    for n in leaps:
         found += [(-float(n), "GPS-UTC leap seconds"), (float(n), "UTC-GPS leap seconds")]
     for n in [*leaps, 0]:  # 0: a conversion that ignored the leap seconds
         unix_minus_gps = GPS_UNIX_EPOCH_S - n
