@@ -168,9 +168,12 @@ E57_PAGE = 1024
 E57_PAYLOAD = 1020
 
 
-def e57_fix_checksums(data: bytearray) -> bytearray:
-    """Recompute every page's CRC (big endian, last 4 bytes of each 1024-byte page)."""
-    for start in range(0, len(data) - E57_PAGE + 1, E57_PAGE):
+def e57_fix_checksums(data: bytearray, offsets: list[int] | None = None) -> bytearray:
+    """Recompute the CRC (big endian, last 4 bytes of each 1024-byte page) of every page, or of
+    the pages holding ``offsets``."""
+    pages = range(0, len(data) - E57_PAGE + 1, E57_PAGE) if offsets is None else sorted(
+        {o // E57_PAGE * E57_PAGE for o in offsets if o // E57_PAGE * E57_PAGE + E57_PAGE <= len(data)})
+    for start in pages:
         data[start + E57_PAYLOAD:start + E57_PAGE] = struct.pack(">I", crc32c(bytes(data[start:start + E57_PAYLOAD])))
     return data
 
@@ -400,10 +403,12 @@ def e57_mutants(base: bytes, tag: str, rng: np.random.Generator, n_flips: int, n
     payload = payload[payload >= 48]
     for k in range(n_fixed):
         out = bytearray(base)
+        flipped = []
         for _ in range(int(rng.integers(1, 4))):
             i = int(rng.choice(payload))
             out[i] ^= 1 << int(rng.integers(0, 8))
-        yield Mutant(f"{tag}/crcfixed_bitflip_{k}", bytes(e57_fix_checksums(out)), ".e57", False)
+            flipped.append(i)
+        yield Mutant(f"{tag}/crcfixed_bitflip_{k}", bytes(e57_fix_checksums(out, flipped)), ".e57", False)
     yield from truncation_mutants(base, tag, ".e57", rng, n_cut)
     for field, offset, fmt, values in (("physical_length", 16, "<Q", (0, len(base) + 1024, 2**63)),
                                        ("xml_offset", 24, "<Q", (0, len(base), 2**62)),
@@ -412,12 +417,13 @@ def e57_mutants(base: bytes, tag: str, rng: np.random.Generator, n_flips: int, n
         for value in values:
             out = bytearray(base)
             struct.pack_into(fmt, out, offset, value)
-            yield Mutant(f"{tag}/{field}={value}", bytes(e57_fix_checksums(out)), ".e57", True)
+            yield Mutant(f"{tag}/{field}={value}", bytes(e57_fix_checksums(out, [offset])), ".e57", True)
     packet = e57_first_data_packet(base)
     for value in (3, 255):
         out = bytearray(base)
         out[packet] = value
-        yield Mutant(f"{tag}/data_packet_type={value}", bytes(e57_fix_checksums(out)), ".e57", points_read)
+        yield Mutant(f"{tag}/data_packet_type={value}", bytes(e57_fix_checksums(out, [packet])), ".e57",
+                     points_read)
 
 
 # --------------------------------------------------------------------------- text mutants
