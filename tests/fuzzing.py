@@ -472,21 +472,22 @@ def trajectory_mutants(text: str, tag: str, rng: np.random.Generator, n_random: 
                      len(data[:cut].split(b"\n")[-1].split()) < 8)
 
 
-def toml_mutants(text: str, tag: str, rng: np.random.Generator, n_random: int, deep: int = 100_000
+def toml_mutants(text: str, tag: str, rng: np.random.Generator, n_random: int, key: str, deep: int = 100_000
                  ) -> Iterator[Mutant]:
-    """TOML damage: deep nesting, non-finite numbers, wrong types, random byte damage."""
+    """TOML damage: deep nesting, non-finite numbers and wrong types for the number ``key``,
+    random byte damage."""
     yield Mutant(f"{tag}/nested_array_{deep}", (text + f"\nx = {'[' * deep}{']' * deep}\n").encode(), ".toml", True)
     yield Mutant(f"{tag}/nested_table_{deep // 100}",
                  (text + "\ny = " + "{a = " * (deep // 100) + "1" + "}" * (deep // 100) + "\n").encode(), ".toml", True)
-    for value in ("nan", "inf", "-inf", "+nan"):
-        yield Mutant(f"{tag}/value={value}", _replace_first_number(text, value).encode(), ".toml", True)
-    yield Mutant(f"{tag}/value=string", _replace_first_number(text, '"0.05"').encode(), ".toml", True)
-    yield Mutant(f"{tag}/value=1e400", _replace_first_number(text, "1e400").encode(), ".toml", True)
+    for value in ("nan", "inf", "-inf", "+nan", '"0.05"', "1e400"):
+        edited = _replace_number(text, key, value)
+        assert edited != text, key
+        yield Mutant(f"{tag}/{key}={value}", edited.encode(), ".toml", True)
     yield Mutant(f"{tag}/binary", bytes(rng.integers(0, 256, 2000, dtype=np.uint8)), ".toml", True)
     yield from bit_flip_mutants(text.encode(), tag, ".toml", rng, n_random)
 
 
-def _replace_first_number(text: str, value: str) -> str:
+def _replace_number(text: str, key: str, value: str) -> str:
     import re
 
-    return re.sub(r"(=\s*)-?[0-9][0-9.eE+-]*", lambda m: m.group(1) + value, text, count=1)
+    return re.sub(rf"(?m)^({key}\s*=\s*)-?[0-9][0-9.eE+-]*", lambda m: m.group(1) + value, text, count=1)

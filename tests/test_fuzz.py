@@ -77,8 +77,9 @@ def corpus(folder: Path) -> Corpus:
         "las": (lambda p: ["info", "--full", p], las),
         "e57": (lambda p: ["info", "--full", p], e57_files),
         "trajectory": (lambda p: ["info", p], lambda: trajectory_mutants(trajectory, "traj", rng, 20)),
-        "reference": (lambda p: ["info", p], lambda: toml_mutants(reference, "ref", rng, 20)),
-        "config": (lambda p: ["config", "--config", p], lambda: toml_mutants(config, "cfg", rng, 20)),
+        "reference": (lambda p: ["info", p], lambda: toml_mutants(reference, "ref", rng, 20,
+                                                                          "plane_construction_accuracy_m")),
+        "config": (lambda p: ["config", "--config", p], lambda: toml_mutants(config, "cfg", rng, 20, "window_s")),
     }
 
 
