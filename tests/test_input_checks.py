@@ -476,3 +476,30 @@ def test_18_s_in_a_long_run_is_found_below_the_dropped_share() -> None:
 def test_poor_overlap_without_a_recognised_offset() -> None:
     problem = _diagnose(T0 + 100.0, T0)
     assert problem is not None and problem.offset_s is None and "41.7 % outside" in problem.message()
+
+
+# --------------------------------------------------------------------------- library noise
+
+
+def test_library_warnings_and_panics_become_one_line_naming_the_file(caplog: pytest.LogCaptureFixture) -> None:
+    import warnings
+
+    from kinreg.io.quiet import library_calls
+
+    class PanicException(BaseException):  # what pyo3 raises for a Rust panic
+        pass
+
+    with caplog.at_level(logging.WARNING, logger="kinreg"), library_calls("cloud.laz"):
+        warnings.warn("invalid value encountered in cast\nsecond line", RuntimeWarning, stacklevel=1)
+    assert [r.getMessage() for r in caplog.records] == [
+        "cloud.laz: RuntimeWarning: invalid value encountered in cast"]
+    with pytest.raises(CloudError, match=r"^cloud\.laz: the decoder failed: called unwrap on Err$"), \
+            library_calls("cloud.laz"):
+        raise PanicException("called unwrap on Err\nnote: run with RUST_BACKTRACE=1")
+
+
+def test_cli_prints_a_warning_as_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from kinreg_cli.main import _one_line_warning
+
+    _one_line_warning(RuntimeWarning("overflow encountered\nin multiply"), RuntimeWarning, "x.py", 3)
+    assert capsys.readouterr().err == "kinreg: warning: RuntimeWarning: overflow encountered\n"
