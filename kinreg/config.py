@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import sys
 import types
 import typing
@@ -40,6 +41,13 @@ class InputConfig:
     trajectory_format: str = "auto"  # auto, geoslam, tum, ply or csv
     trajectory_columns: str = ""  # CSV only, e.g. "time=gps_time,x=E,y=N,z=H,qw=q0,qx=q1,qy=q2,qz=q3"
     chunk_points: int = 2_000_000  # points decoded per block; bounds memory, not results
+    # Added to every point time of the cloud to put it in the trajectory's time base, e.g. -18 for a
+    # cloud in GPS time and a trajectory in UTC (kinreg names the likely offset when they differ).
+    cloud_time_offset_s: float = dataclasses.field(default=0.0, metadata={"signed": True})
+    # Largest share of a cloud's points that may be left out for a non-finite time or a time outside
+    # the trajectory's range; more stops the run before the long work.
+    max_dropped_share: float = dataclasses.field(default=0.05, metadata={"share": True})
+    check_time_base: bool = True  # false: skip the comparison of the cloud's and trajectory's time bases
 
 
 @dataclasses.dataclass(frozen=True)
@@ -272,6 +280,8 @@ def _coerce(value: Any, kind: Any, where: str) -> Any:
     if kind is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if kind is str:
         if not isinstance(value, str):
@@ -296,6 +306,12 @@ def _check_section(section: Any, where: str) -> None:
     for f in dataclasses.fields(section):
         v = getattr(section, f.name)
         positive = f.name.endswith(("_s", "_m", "_points")) and not f.name.startswith("min_")
+        if f.metadata.get("signed"):
+            continue
+        if f.metadata.get("share"):
+            if not 0.0 <= v <= 1.0:
+                raise ConfigError(f"[{where}] {f.name}: must be a share from 0 to 1, got {v}")
+            continue
         if f.metadata.get("allow_zero"):
             positive = False
             if isinstance(v, int | float) and v < 0:
@@ -339,6 +355,8 @@ def load_config(path: str | Path | None = None, overrides: Mapping[str, Any] | N
             raise ConfigError("file not found", p) from None
         except tomllib.TOMLDecodeError as e:
             raise ConfigError(f"invalid TOML: {e}", p) from None
+        except RecursionError:
+            raise ConfigError("invalid TOML: arrays or tables nested too deep", p) from None
         except (OSError, UnicodeDecodeError) as e:
             raise ConfigError(f"cannot read: {e}", p) from None
     for dotted, value in (overrides or {}).items():

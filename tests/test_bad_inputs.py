@@ -331,7 +331,7 @@ def corrupted_laz_chunk(env: Env) -> Case:
     data[middle : middle + 256] = np.random.default_rng(0).bytes(256)
     path = env.write("corrupted.laz", bytes(data))
     return Case(env.slice_args(trajectory=run.trajectory_path, cloud=path), path,
-                r"^decoding failed after [0-9,]+ of 200,000 points \(truncated or corrupted\?\): ", env.seq)
+                r"^decoding failed (after|at point) [0-9,]+ of 200,000 points \(truncated or corrupted\?\): ", env.seq)
 
 
 def las_without_gps_time(env: Env) -> Case:
@@ -378,7 +378,8 @@ def no_time_overlap(env: Env) -> Case:
     path = env.bad_trajectory(edit, "shifted.txt").bad
     assert path is not None
     return Case(env.slice_args(trajectory=path), env.run.cloud_path,
-                r"^none of the 20,000 points lies in the trajectory's time range \[[0-9.]+, [0-9.]+\] s$", env.seq)
+                r"^point times [0-9.]+ \.\. [0-9.]+ s do not fit the trajectory's [0-9.]+ \.\. [0-9.]+ s "
+                r"\(100\.0 % outside\); no recognised time-base offset", env.seq)
 
 
 def windows_give_no_scan(env: Env) -> Case:
@@ -641,13 +642,17 @@ def test_catalogue_has_at_least_25_cases() -> None:
 def test_partial_time_overlap_warns_with_the_share_outside(
     tmp_path: Path, base_run: SyntheticRun, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
-    """The trajectory covers the first 7.2 s of a 12 s cloud: 40 % of the points are left out, loudly."""
+    """The trajectory covers the first 7.2 s of a 12 s cloud: 40 % of the points are left out, loudly,
+    where ``[input] max_dropped_share`` allows it (the default 0.05 refuses, tests/test_input_checks.py)."""
     lines = base_run.trajectory_path.read_text().splitlines()
     short = tmp_path / "short.txt"
     short.write_text("\n".join(lines[:722]) + "\n")  # header + 721 rows at 100 Hz
     out = tmp_path / "out" / "seq.e57"
+    cfg = tmp_path / "k.toml"
+    cfg.write_text("[input]\nmax_dropped_share = 0.5\n")
     with caplog.at_level(logging.WARNING, logger="kinreg"):
-        code, stdout, err = run_cli(["slice", "-t", short, "-c", base_run.cloud_path, "-o", out], capsys)
+        code, stdout, err = run_cli(["slice", "-t", short, "-c", base_run.cloud_path, "-o", out,
+                                     "--config", cfg], capsys)
     assert code == 0, err
     outside = int(np.count_nonzero(base_run.stamps_s > float(lines[721].split()[0])))
     share = 100.0 * outside / len(base_run.stamps_s)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -57,6 +58,8 @@ def _root(
         format="kinreg: %(levelname)s: %(message)s",
         stream=sys.stderr,
     )
+    # laspy logs lazrs' IoError at ERROR level just before raising it; kinreg's error line says it.
+    logging.getLogger("laspy").setLevel(logging.INFO if verbose else logging.CRITICAL)
 
 
 def _config(path: Path | None, overrides: dict[str, Any]) -> KinregConfig:
@@ -65,7 +68,8 @@ def _config(path: Path | None, overrides: dict[str, Any]) -> KinregConfig:
 
 @app.command()
 def info(
-    file: Annotated[Path, typer.Argument(help="A trajectory (GeoSLAM, TUM, PLY, CSV) or a cloud (LAS/LAZ/E57).")],
+    file: Annotated[Path, typer.Argument(
+        help="A trajectory (GeoSLAM, TUM, PLY, CSV), a cloud (LAS/LAZ/E57) or reference planes (TOML).")],
     full: Annotated[
         bool, typer.Option("--full", help="Stream the whole cloud for its time range and order.")
     ] = False,
@@ -78,6 +82,8 @@ def info(
 
     if file.suffix.lower() in CLOUD_SUFFIXES:
         rows = describe_cloud(file, full=full, progress=RichProgress(console) if full else None)
+    elif file.suffix.lower() == ".toml":
+        rows = _describe_reference_planes(file)
     else:
         rows = describe_trajectory(file, None if trajectory_format == "auto" else trajectory_format)
     _print_figures(str(file), rows)
@@ -91,6 +97,18 @@ def _print_figures(title: str, rows: list[tuple[str, str]]) -> None:
     for key, value in rows:
         table.add_row(escape(key), escape(value))
     out.print(table)
+
+
+def _describe_reference_planes(path: Path) -> list[tuple[str, str]]:
+    from kinreg.io.reference_planes import read_reference_planes
+
+    planes = read_reference_planes(path)
+    rows = [("kind", "reference planes"), ("construction accuracy", f"{planes.accuracy_m:g} m"),
+            ("planes", f"{len(planes)}"), ("links", f"{len(planes.links)}"),
+            ("initial transform", "yes" if planes.T_ref_traj is not None else "no")]
+    rows += [(p.name, f"n = [{p.normal[0]:.6f}, {p.normal[1]:.6f}, {p.normal[2]:.6f}], d = {p.d_m:.4f} m")
+             for p in planes.planes]
+    return rows
 
 
 @app.command("slice")
@@ -238,8 +256,16 @@ def _fail(message: str, code: int) -> None:
     sys.exit(code)
 
 
+def _one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                      file: object = None, line: str | None = None) -> None:
+    # A library warning (numpy's RuntimeWarning, ...) as one line, without the source line.
+    text = str(message).strip().splitlines()
+    print(f"kinreg: warning: {category.__name__}: {text[0] if text else ''}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point: one clean line and exit code 1 for every kinreg error, no traceback."""
+    warnings.showwarning = _one_line_warning
     try:
         code = app(args=argv, standalone_mode=False)
     except KinregError as e:

@@ -6,6 +6,7 @@ in the object frame, float64 times. Nothing assumes the cloud fits in memory.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,6 +16,8 @@ import numpy as np
 
 from kinreg.errors import CloudError
 from kinreg.types import CloudChunk
+
+log = logging.getLogger(__name__)
 
 DEFAULT_CHUNK_POINTS = 2_000_000
 
@@ -66,6 +69,53 @@ class RawChunk:
         return np.add(out, self.offsets[k], out=out)
 
 
+class TimeFilter:
+    """What a reader does with the point times it decodes: adds ``offset_s`` (the cloud's time
+    base into the trajectory's, ``[input] cloud_time_offset_s``) and counts the points whose time
+    is not finite. Such points are left in the chunk with their NaN/inf time, which every consumer
+    treats as outside the trajectory (slicing skips them, the corrected cloud drops them).
+
+    At the end of a full pass (:meth:`finish`) the count is logged, and above
+    ``max_dropped_share`` of the points it raises :class:`CloudError` naming the file.
+    """
+
+    def __init__(self, offset_s: float = 0.0, max_dropped_share: float = 1.0) -> None:
+        self.offset_s = float(offset_s)
+        self.max_dropped_share = float(max_dropped_share)
+        self.n_points = 0
+        self.n_seen = 0
+        self.n_nonfinite = 0
+
+    def restart(self, n_points: int) -> None:
+        self.n_points, self.n_seen, self.n_nonfinite = n_points, 0, 0
+
+    def apply(self, stamps_s: np.ndarray, path: Path) -> np.ndarray:
+        """``stamps_s`` shifted by the offset (in place where it is writable float64), counted."""
+        if self.offset_s:
+            if stamps_s.dtype == np.float64 and stamps_s.flags.writeable:
+                stamps_s += self.offset_s
+            else:
+                stamps_s = stamps_s + self.offset_s
+        finite = int(np.count_nonzero(np.isfinite(stamps_s)))
+        self.n_seen += len(stamps_s)
+        self.n_nonfinite += len(stamps_s) - finite
+        return stamps_s
+
+    def check_share(self, n_bad: int, n_total: int, path: Path, sampled: bool = False) -> None:
+        """Raise :class:`CloudError` when ``n_bad`` of ``n_total`` exceeds ``max_dropped_share``."""
+        if n_total and n_bad / n_total > self.max_dropped_share:
+            what = "of a sample of" if sampled else "of"
+            raise CloudError(f"{n_bad:,} {what} {n_total:,} points ({100 * n_bad / n_total:.1f} %) have no finite "
+                             f"time; more than [input] max_dropped_share = {self.max_dropped_share:g}", path)
+
+    def finish(self, path: Path) -> None:
+        """After a full pass: log the points dropped for their time, refuse above the share."""
+        if self.n_nonfinite:
+            log.warning("%s: %d of %d points have no finite time and are left out", path, self.n_nonfinite,
+                        self.n_seen)
+        self.check_share(self.n_nonfinite, self.n_seen, path)
+
+
 class CloudReader(Protocol):
     """A streaming reader. Use as a context manager; iterate ``iter_chunks`` once or more.
 
@@ -75,6 +125,7 @@ class CloudReader(Protocol):
 
     path: Path
     info: CloudInfo
+    times: TimeFilter
 
     def iter_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[CloudChunk]: ...
 
@@ -89,11 +140,12 @@ LAS_SUFFIXES = {".las", ".laz"}
 E57_SUFFIXES = {".e57"}
 
 
-def open_cloud(path: str | Path, require_time: bool = True) -> CloudReader:
+def open_cloud(path: str | Path, require_time: bool = True, times: TimeFilter | None = None) -> CloudReader:
     """Open a LAS/LAZ or E57 cloud for streaming.
 
     With ``require_time`` a file without per-point times (LAS ``gps_time``, E57 ``timeStamp``)
-    raises :class:`CloudError` naming the file.
+    raises :class:`CloudError` naming the file. ``times`` shifts and counts the point times
+    (:class:`TimeFilter`; default: unchanged, counted, never refused).
     """
     p = Path(path)
     if not p.exists():
@@ -104,9 +156,9 @@ def open_cloud(path: str | Path, require_time: bool = True) -> CloudReader:
     if suffix in LAS_SUFFIXES:
         from kinreg.io.las import LasCloudReader
 
-        return LasCloudReader(p, require_time=require_time)
+        return LasCloudReader(p, require_time=require_time, times=times)
     if suffix in E57_SUFFIXES:
         from kinreg.io.e57 import E57CloudReader
 
-        return E57CloudReader(p, require_time=require_time)
+        return E57CloudReader(p, require_time=require_time, times=times)
     raise CloudError(f"unsupported point cloud format '{p.suffix}' (expected .las, .laz or .e57)", p)

@@ -53,7 +53,7 @@ from pye57 import libe57
 from kinreg import __version__
 from kinreg.errors import CloudError, OutputError
 from kinreg.geometry import FloatArray, Pose, quat_normalize
-from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo
+from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo, TimeFilter
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import CloudChunk, Scan, ScanKind
 
@@ -70,7 +70,12 @@ _E57_SIGNATURE = b"ASTM-E57"
 _E57_HEADER_BYTES = 48
 _CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 _SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+# libE57Format's own exceptions, and what its bindings raise for damaged structures: a string where
+# a number belongs (ValueError), undecodable bytes in a name or packet (UnicodeDecodeError), a
+# count that makes them allocate or index beyond the file.
 _E57_FAILURES = (libe57.E57Exception, RuntimeError)
+_E57_READ_FAILURES = (*_E57_FAILURES, ValueError, TypeError, UnicodeDecodeError, IndexError, MemoryError,
+                      OverflowError)
 
 
 # --------------------------------------------------------------------------- headers
@@ -118,6 +123,8 @@ class E57ScanHeader:
 
 def _reason(exc: BaseException) -> str:
     """One line from a libE57Format exception (its message spans a dozen lines of debug info)."""
+    if isinstance(exc, UnicodeDecodeError):  # the library's message quotes damaged bytes
+        return "damaged data (the library's message is not readable text)"
     text = str(exc)
     first = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
     os_error = re.search(r"error='([^']*)'", text)
@@ -150,9 +157,11 @@ def _child(node: Any, name: str) -> Any | None:
 
 
 def _number(node: Any) -> float:
-    """The value of a Float, Integer or ScaledInteger node as a float."""
+    """The value of a Float, Integer or ScaledInteger node as a float (ValueError for any other)."""
     if isinstance(node, libe57.ScaledIntegerNode):
         return float(node.scaledValue())
+    if not isinstance(node, libe57.FloatNode | libe57.IntegerNode):
+        raise ValueError(f"'{node.pathName()}' is a {type(node).__name__}, not a number")
     return float(node.value())
 
 
@@ -184,6 +193,8 @@ def _parse_pose(node: Any | None, label: str, path: Path) -> Pose | None:
         quat = quat_normalize(quat)
     if translation is not None:
         t = np.array([_number(translation[k]) if translation.isDefined(k) else 0.0 for k in "xyz"])
+        if not np.isfinite(t).all():
+            raise CloudError(f"{label}: pose translation {t.tolist()} is not finite", path)
     return Pose(quat, t)
 
 
@@ -268,8 +279,8 @@ class _E57File:
     def _errors(self, what: str) -> Iterator[None]:
         try:
             yield
-        except _E57_FAILURES as exc:
-            raise CloudError(f"{what}: {_reason(exc)}", self.path) from exc
+        except _E57_READ_FAILURES as exc:
+            raise CloudError(f"{what}: {_reason(exc)}", self.path) from None
 
     def close(self) -> None:
         if self._imf is not None and self._imf.isOpen():
@@ -424,12 +435,15 @@ class E57CloudReader:
     ``require_time`` if any entry lacks a ``timeStamp`` field.
     """
 
-    def __init__(self, path: str | Path, require_time: bool = True) -> None:
+    def __init__(self, path: str | Path, require_time: bool = True, times: TimeFilter | None = None) -> None:
         self.path = Path(path)
         self.require_time = require_time
+        self.times = times or TimeFilter()
         self._file = _E57File(self.path)
         try:
             self.scans: list[E57ScanHeader] = self._file.headers
+            if not self.scans:
+                raise CloudError("holds no scans (no data3D entries)", self.path)
             if require_time:
                 for h in self.scans:
                     if not h.has_time:
@@ -493,6 +507,7 @@ class E57CloudReader:
         if chunk_points < 1:
             raise ValueError(f"chunk_points must be positive, got {chunk_points}")
         record_offset = 0
+        self.times.restart(self.info.n_points)
         for h in self.scans:
             pose = h.T_obj_scan
             for block in self._file.iter_blocks(h.index, chunk_points, drop_invalid_time=self.require_time):
@@ -501,11 +516,12 @@ class E57CloudReader:
                 xyz = block.xyz_scan if pose is None else pose.apply(block.xyz_scan)
                 yield CloudChunk(
                     xyz=xyz,
-                    stamps_s=block.stamps_s,
+                    stamps_s=None if block.stamps_s is None else self.times.apply(block.stamps_s, self.path),
                     intensity=block.intensity,
                     first_index=record_offset + block.first_record,
                 )
             record_offset += h.n_points
+        self.times.finish(self.path)
 
     def close(self) -> None:
         """Close the file; safe to call twice."""
@@ -568,6 +584,33 @@ def iter_e57_scans(
     try:
         for index in range(len(f.headers)):
             yield f.read_scan(index, require_pose, kind)
+    finally:
+        f.close()
+
+
+def check_static_scans(path: str | Path) -> int:
+    """Read every scan of a static E57 once, before the long work: each must have a pose and only
+    finite points. Returns the number of scans. Raises :class:`CloudError` naming the file and the
+    scan for no scans, a missing or non-finite pose, a scan without points or with non-finite ones."""
+    f = _E57File(path)
+    try:
+        if not f.headers:
+            raise CloudError("holds no scans (no data3D entries)", f.path)
+        for h in f.headers:
+            if h.T_obj_scan is None:
+                raise CloudError(f"{h.label} has no pose; static scans must carry their registered pose "
+                                 "in the object frame", f.path)
+            n = 0
+            with np.errstate(all="ignore"):
+                for block in f.iter_blocks(h.index, DEFAULT_CHUNK_POINTS, drop_invalid_time=False):
+                    bad = ~np.isfinite(block.xyz_scan).all(axis=1)
+                    if bad.any():
+                        k = block.first_record + int(np.argmax(bad))
+                        raise CloudError(f"{h.label}: record {k} has a coordinate that is not finite", f.path)
+                    n += len(block.xyz_scan)
+            if n == 0:
+                raise CloudError(f"{h.label} holds no valid points", f.path)
+        return len(f.headers)
     finally:
         f.close()
 

@@ -55,6 +55,7 @@ def describe_cloud(path: str | Path, full: bool = False, progress: Progress | No
             progress.start("read", total=info.n_points, unit="points")
             for chunk in reader.iter_chunks():
                 t = chunk.stamps_s
+                t = None if t is None else t[np.isfinite(t)]  # counted by the reader (reader.times)
                 if t is None or len(t) == 0:
                     continue
                 t_min, t_max = min(t_min, float(t.min())), max(t_max, float(t.max()))
@@ -64,4 +65,5 @@ def describe_cloud(path: str | Path, full: bool = False, progress: Progress | No
             progress.finish()
             rows.append(("time range [s]", f"{t_min:.6f} .. {t_max:.6f} ({t_max - t_min:.3f} s)"))
             rows.append(("time-sorted", "yes" if sorted_ok else "no"))
+            rows.append(("points without finite time", f"{reader.times.n_nonfinite:,}"))
     return rows

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import struct
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -11,13 +12,16 @@ import lazrs
 import numpy as np
 
 from kinreg.errors import CloudError
-from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo, RawChunk
+from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo, RawChunk, TimeFilter
+from kinreg.io.las_header import check_las_file
+from kinreg.io.quiet import library_calls
 from kinreg.types import CloudChunk
 
 log = logging.getLogger(__name__)
 
 # What laspy and its lazrs backend raise for unreadable, truncated or corrupted files.
-_DECODE_ERRORS = (laspy.LaspyException, lazrs.LazrsError, ValueError, OSError, EOFError, RuntimeError)
+_DECODE_ERRORS = (laspy.LaspyException, lazrs.LazrsError, ValueError, OSError, EOFError, RuntimeError, IndexError,
+                  MemoryError, OverflowError, struct.error, UnicodeDecodeError)
 
 # Only the fields kinreg uses are decompressed: LAS 1.4 layered LAZ (point formats 6-10) skips
 # the others entirely, which speeds up decoding; older formats ignore the selection.
@@ -37,14 +41,19 @@ class LasCloudReader:
     """Stream a LAS/LAZ file as :class:`CloudChunk` blocks of float64 object-frame points.
 
     ``require_time`` (default) raises :class:`CloudError` when the point format has no
-    ``gps_time``. Decoding errors (truncated or corrupted files) become :class:`CloudError`
-    naming the file and the point where decoding stopped.
+    ``gps_time``. The header is checked against the file first (:func:`check_las_file`). Decoding
+    errors (truncated or corrupted files) become :class:`CloudError` naming the file and the
+    point where decoding stopped. ``times`` (a :class:`TimeFilter`) shifts every point time into
+    the trajectory's time base and counts the points whose time is not finite.
     """
 
-    def __init__(self, path: str | Path, require_time: bool = True) -> None:
+    def __init__(self, path: str | Path, require_time: bool = True, times: TimeFilter | None = None) -> None:
         self.path = Path(path)
+        self.times = times or TimeFilter()
+        self.facts = check_las_file(self.path)
         try:
-            self._reader = laspy.open(self.path, laz_backend=_laz_backend(), decompression_selection=_SELECTION)
+            with library_calls(self.path):
+                self._reader = laspy.open(self.path, laz_backend=_laz_backend(), decompression_selection=_SELECTION)
         except _DECODE_ERRORS as e:
             raise CloudError(f"cannot open as LAS/LAZ: {_describe(e)}", self.path) from None
         header = self._reader.header
@@ -81,7 +90,7 @@ class LasCloudReader:
             xyz = np.empty((n, 3), dtype=np.float64)
             for k in range(3):
                 raw.coordinate(k, slice(None), xyz[:, k])
-            stamps = None if raw.stamps_s is None else np.array(raw.stamps_s, dtype=np.float64)
+            stamps = None if raw.stamps_s is None else np.array(raw.stamps_s, dtype=np.float64)  # shifted already
             intensity = None if raw.intensity is None else np.array(raw.intensity, dtype=np.float32)
             yield CloudChunk(xyz=xyz, stamps_s=stamps, intensity=intensity, first_index=raw.first_index)
 
@@ -94,9 +103,11 @@ class LasCloudReader:
         n_total = self.info.n_points
         point_format = self._reader.header.point_format
         dtype = point_format.dtype()
+        self.times.restart(n_total)
         try:
-            self._reader.seek(0)
-            source = self._reader.point_source
+            with library_calls(self.path):
+                self._reader.seek(0)
+                source = self._reader.point_source
         except _DECODE_ERRORS as e:
             raise CloudError(f"cannot decode the points (truncated or corrupted?): {_describe(e)}", self.path) from None
         # laspy's own read allocates (and zeroes) a new buffer of every chunk: ~30 ms per 2 M points,
@@ -107,14 +118,15 @@ class LasCloudReader:
         while first < n_total:
             n = min(chunk_points, n_total - first)
             try:
-                if decompress_into is not None and dtype.itemsize == point_format.size:
-                    if buffer is None:
-                        buffer = bytearray(n * dtype.itemsize)
-                    view = memoryview(buffer)[: n * dtype.itemsize]
-                    decompress_into(view)
-                    array = np.frombuffer(view, dtype=dtype)
-                else:
-                    array = np.frombuffer(source.read_n_points(n), dtype=dtype)
+                with library_calls(self.path):
+                    if decompress_into is not None and dtype.itemsize == point_format.size:
+                        if buffer is None:
+                            buffer = bytearray(n * dtype.itemsize)
+                        view = memoryview(buffer)[: n * dtype.itemsize]
+                        decompress_into(view)
+                        array = np.frombuffer(view, dtype=dtype)
+                    else:
+                        array = np.frombuffer(source.read_n_points(n), dtype=dtype)
             except _DECODE_ERRORS as e:
                 raise CloudError(
                     f"decoding failed after {first:,} of {n_total:,} points (truncated or corrupted?): {_describe(e)}",
@@ -123,17 +135,40 @@ class LasCloudReader:
             n = len(array)
             if n == 0:
                 break
+            stamps = self.times.apply(array["gps_time"], self.path) if self._has_time else None
             yield RawChunk(
                 ints=(array["X"], array["Y"], array["Z"]),
                 scales=(self._scales[0], self._scales[1], self._scales[2]),
                 offsets=(self._offsets[0], self._offsets[1], self._offsets[2]),
-                stamps_s=array["gps_time"] if self._has_time else None,
+                stamps_s=stamps,
                 intensity=array["intensity"] if "intensity" in self.info.fields else None,
                 first_index=first,
             )
             first += n
         if first < n_total:
             raise CloudError(f"file ends after {first:,} of {n_total:,} points (truncated?)", self.path)
+        self.times.finish(self.path)
+
+    def sample_times(self, n_samples: int = 16, points_per_sample: int = 1000) -> np.ndarray:
+        """Point times (shifted by the time filter's offset, unfiltered) of ``n_samples`` runs of
+        ``points_per_sample`` points spread evenly over the file: a cheap look at the time range
+        and the share of non-finite times, without decoding the whole file."""
+        n_total = self.info.n_points
+        if not self._has_time or n_total == 0:
+            return np.zeros(0)
+        starts = np.unique(np.linspace(0, max(n_total - points_per_sample, 0), n_samples).astype(np.int64))
+        parts = []
+        start = 0
+        try:
+            with library_calls(self.path):
+                for start in starts:
+                    self._reader.seek(int(start))
+                    points = self._reader.read_points(min(points_per_sample, n_total - int(start)))
+                    parts.append(np.asarray(points["gps_time"], dtype=np.float64))
+        except _DECODE_ERRORS as e:
+            raise CloudError(f"decoding failed at point {start:,} of {n_total:,} points (truncated or corrupted?): "
+                             f"{_describe(e)}", self.path) from None
+        return np.concatenate(parts) + self.times.offset_s if parts else np.zeros(0)
 
     def close(self) -> None:
         self._reader.close()

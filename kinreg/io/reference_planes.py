@@ -158,6 +158,8 @@ def parse_reference_planes(text: str, source: str | None = None) -> ReferencePla
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"TOML syntax error: {e}", source) from None
+    except RecursionError:
+        raise ConfigError("TOML syntax error: arrays or tables nested too deep", source) from None
     return reference_planes_from_mapping(doc, source)
 
 
@@ -251,15 +253,18 @@ def _parse_plane(entry: Any, i: int, source: str | None) -> ReferencePlane:
         if not isinstance(raw, list) or len(raw) != 3:
             raise ConfigError(f"{where}: normal must be a list of 3 numbers, got {raw!r}", source)
         n = np.array([_number(v, f"{where}: normal", source) for v in raw])
-        norm = float(np.linalg.norm(n))
+        # Scaled by the largest component first: the squares of [1e308, 1e308, 0] overflow.
+        largest = float(np.abs(n).max())
+        norm = largest * float(np.linalg.norm(n / largest)) if largest > 0.0 else 0.0
         if norm < _MIN_NORMAL_NORM:
             raise ConfigError(f"{where}: normal is zero", source)
+        n = n / largest
         d = _number(entry["d_m"], f"{where}: d_m", source)
         if abs(norm - 1.0) > 1e-3:
             # d_m is a distance in metres along the *unit* normal; a long normal is only a direction.
             logger.warning("%s: normal has length %.6g; normalised, d_m kept as the distance %.6g m",
                            where, norm, d)
-        return ReferencePlane(name=name, normal=n / norm, d_m=d)
+        return ReferencePlane(name=name, normal=n / float(np.linalg.norm(n)), d_m=d)
     raise ConfigError(f"{where}: missing keys: give axis/offset_m/normal_sign or normal/d_m", source)
 
 

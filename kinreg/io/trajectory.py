@@ -123,18 +123,52 @@ def _is_float(v: str) -> bool:
 
 
 def _read_text(p: Path, kind: TrajectoryFormat) -> tuple[FloatArray, np.ndarray]:
-    """GeoSLAM (t x y z q0 q1 q2 q3 ...) or TUM (t x y z qx qy qz qw) whitespace text."""
+    """GeoSLAM (t x y z q0 q1 q2 q3 ...) or TUM (t x y z qx qy qz qw) whitespace text.
+
+    A header line (``%`` or ``#``) that names the columns decides their order, whatever the
+    format: ``%time x y z qx qy qz qw`` is read as scalar-last. Without one, the format's order.
+    """
     rows: list[tuple[int, list[str]]] = []
+    order: list[int] | None = None
     with open(p, encoding="utf-8") as f:
         for line_no, line in enumerate(f, start=1):
             s = line.strip()
-            if not s or s[0] in "%#":
+            if not s:
+                continue
+            if s[0] in "%#":
+                if not rows:  # a header names the columns of the rows after it
+                    order = _header_order(s, line_no, p) or order
                 continue
             rows.append((line_no, s.replace(",", " ").split()))
+    if order is not None:
+        width = max(order) + 1
+        table, lines = _parse_rows([(n, f[:width]) for n, f in rows], width, p)
+        return table[:, order], lines
     table, lines = _parse_rows(rows, 8, p)
     if kind is TrajectoryFormat.TUM:
         table = table[:, [0, 1, 2, 3, 7, 4, 5, 6]]
     return table, lines
+
+
+def _header_order(line: str, line_no: int, p: Path) -> list[int] | None:
+    """The file columns of ``time x y z qw qx qy qz`` named by a ``%``/``#`` header line, or
+    ``None`` for a comment (fewer than four of kinreg's columns named). A header that names
+    some columns but not all is an error: guessing the rest could turn every orientation."""
+    names = [n.lower().lstrip("%#") for n in line.lstrip("%#").replace(",", " ").split()]
+    found: dict[str, int] = {}
+    for key in COLUMNS:
+        hits = [names.index(a) for a in _HEADER_ALIASES[key] if a in names]
+        if hits:
+            found[key] = min(hits)
+    if len(found) < 4:
+        return None
+    missing = [key for key in COLUMNS if key not in found]
+    if missing:
+        raise TrajectoryError(f"header line {line_no} names no column for {', '.join(missing)} "
+                              f"(has: {' '.join(names)})", p)
+    if len(set(found.values())) < len(COLUMNS):
+        raise TrajectoryError(f"header line {line_no} names one column twice ({' '.join(names)})", p)
+    return [found[key] for key in COLUMNS]
 
 
 _CSV_ALIASES: dict[str, tuple[str, ...]] = {
@@ -146,6 +180,12 @@ _CSV_ALIASES: dict[str, tuple[str, ...]] = {
     "qx": ("qx", "q1", "quat_x"),
     "qy": ("qy", "q2", "quat_y"),
     "qz": ("qz", "q3", "quat_z"),
+}
+
+
+_HEADER_ALIASES: dict[str, tuple[str, ...]] = {
+    key: (*names, *(f"q_{n[1:]}" for n in names if n in ("qw", "qx", "qy", "qz")))
+    for key, names in _CSV_ALIASES.items()
 }
 
 

@@ -55,6 +55,7 @@ import numpy as np
 from kinreg.config import KinregConfig
 from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.geometry import Pose
+from kinreg.io.checks import time_filter
 from kinreg.io.cloud import open_cloud
 from kinreg.progress import Progress
 from kinreg.run.codecs import planes_to_arrays, stations_to_arrays
@@ -316,7 +317,8 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
     side by side; the cache entries need nothing more: they are keyed by the run's files."""
     name = spill_record_name(run_index)
     input_part = {"trajectory_format": config.input.trajectory_format,
-                  "trajectory_columns": config.input.trajectory_columns}
+                  "trajectory_columns": config.input.trajectory_columns,
+                  "cloud_time_offset_s": config.input.cloud_time_offset_s}
     slicing_part = dataclasses.replace(config.slicing, temp_dir="")  # where the spill goes is no result
     key = run.key("slice", trajectory_path, cloud_path, slicing_part, input_part)
     entry = run.load("slice", key)
@@ -332,7 +334,7 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
                 _write_spill_record(run.cache.folder, key, folder, name)
             except OSError as e:
                 raise OutputError(f"cannot write the stage cache: {e.strerror or e}", run.cache.folder) from None
-            with open_cloud(cloud_path) as cloud:
+            with open_cloud(cloud_path, times=time_filter(config.input)) as cloud:
                 sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
                                               progress=progress, folder=folder)
         except BaseException:
