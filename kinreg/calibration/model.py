@@ -181,6 +181,10 @@ class CalibrationConfig:
     # a direction counts as undetermined: its sigma would be > 1e4 times the best one. Tracker
     # noise alone makes parallel planes "determined" at ~1e-9, so this must stay well above it.
     rank_tolerance: float = 1e-8
+    # Acceptance (:func:`~kinreg.calibration.assignment.calibration_problems`): a plate that was
+    # scanned gives hundreds of points per second of profiles; fewer than this means it was
+    # missed or its points were not found, and its planes' leverage is gone.
+    min_points_per_plane: int = 30
 
 
 # --------------------------------------------------------------------------- results
@@ -243,6 +247,9 @@ class CalibrationResult(CovarianceFigures):
     iterations: int
     converged: bool
     plane_corrections: FloatArray | None = None  # (k, 3): tilt u, tilt v (rad), offset (m)
+    # A-priori sigma (N,) of each point's misclosure from the scanner noise (nan for points not
+    # used): residuals_m / residual_sigma_m is the standardised residual of the data snooping.
+    residual_sigma_m: FloatArray | None = None
 
 
 
@@ -534,6 +541,8 @@ def estimate_calibration(points_s: ArrayLike, stamps_s: ArrayLike, plane_index: 
     # Orthogonal residual of each point to its (adjusted) plane: the final misclosure f.
     resid = np.full(len(P_all), np.nan)
     resid[used] = f
+    resid_sigma = np.full(len(P_all), np.nan)
+    resid_sigma[used] = np.sqrt(var)
     stats = []
     for i, pl in enumerate(planes.planes):
         sel = plane == i
@@ -549,7 +558,7 @@ def estimate_calibration(points_s: ArrayLike, stamps_s: ArrayLike, plane_index: 
         calibration=SystemCalibration.from_vector(x), covariance=cov, sigma0=sigma0,
         redundancy=redundancy, global_test=test, plane_stats=tuple(stats), residuals_m=resid,
         n_points=N, n_epochs=E, iterations=it, converged=converged,
-        plane_corrections=q.copy() if observe_planes else None)
+        plane_corrections=q.copy() if observe_planes else None, residual_sigma_m=resid_sigma)
 
 
 def _chol_solve(L: FloatArray, b: FloatArray) -> FloatArray:
