@@ -18,7 +18,8 @@ Across gates it reports the largest difference of the estimates of one seed (the
 not depend on the starting gate).
 
 Usage: python benchmarks/eval_calibration_room.py [--seeds 50] [--gates-mm 10,30,60,100]
-       [--zenith-step-deg 0.2] [--out benchmarks/calibration_room.json]
+       [--zenith-step-deg 0.2] [--profiles 40] [--board-offset-mm 30] [--start-lever-mm 20]
+       [--start-angle-deg 0.5] [--out benchmarks/calibration_room.json]
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from kinreg.calibration.assignment import (
     object_points,
 )
 from kinreg.calibration.model import PARAMETER_NAMES
-from kinreg.calibration.simulate import room_scenario, simulate_calibration
+from kinreg.calibration.simulate import RoomConfig, room_scenario, simulate_calibration
 
 
 def _display(v: np.ndarray) -> np.ndarray:
@@ -46,10 +47,12 @@ def _display(v: np.ndarray) -> np.ndarray:
     return np.concatenate([v[..., :3] * 1e3, np.degrees(v[..., 3:]) * 1e3], axis=-1)
 
 
-def run(seeds: int, gates_mm: list[float], zenith_step_deg: float, n_profiles: int) -> dict:
+def run(seeds: int, gates_mm: list[float], zenith_step_deg: float, n_profiles: int,
+        room: RoomConfig, start_lever_m: float, start_angle_deg: float) -> dict:
     rows: dict[float, list[dict]] = {g: [] for g in gates_mm}
     for seed in range(seeds):
-        cfg, start = room_scenario(seed, n_profiles=n_profiles, zenith_step_deg=zenith_step_deg)
+        cfg, start = room_scenario(seed, n_profiles=n_profiles, zenith_step_deg=zenith_step_deg,
+                                   start_lever_m=start_lever_m, start_angle_deg=start_angle_deg, room=room)
         sim = simulate_calibration(cfg, seed=seed)
         on_plate = sim.plane_index >= 0
         for g in gates_mm:
@@ -113,14 +116,22 @@ def main() -> None:
     ap.add_argument("--gates-mm", default="10,30,60,100")
     ap.add_argument("--zenith-step-deg", type=float, default=0.2)
     ap.add_argument("--profiles", type=int, default=40)
+    ap.add_argument("--board-offset-mm", type=float, default=30.0,
+                    help="distance of the mount board behind each plate")
+    ap.add_argument("--start-lever-mm", type=float, default=20.0)
+    ap.add_argument("--start-angle-deg", type=float, default=0.5)
     ap.add_argument("--out", default="benchmarks/calibration_room.json")
     args = ap.parse_args()
     gates = [float(v) for v in args.gates_mm.split(",")]
     t0 = time.perf_counter()
     report = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
               "seeds": args.seeds, "gates_mm": gates, "zenith_step_deg": args.zenith_step_deg,
-              "profiles": args.profiles, "start_offsets": "2 cm (random direction), 0.5 deg per angle"}
-    report |= run(args.seeds, gates, args.zenith_step_deg, args.profiles)
+              "profiles": args.profiles, "board_offset_mm": args.board_offset_mm,
+              "start_offsets": f"{args.start_lever_mm:g} mm (random direction), {args.start_angle_deg:g} deg "
+                               "per angle (random sign)"}
+    room = RoomConfig(board_offset_m=args.board_offset_mm * 1e-3)
+    report |= run(args.seeds, gates, args.zenith_step_deg, args.profiles, room, args.start_lever_mm * 1e-3,
+                  args.start_angle_deg)
     report["seconds_total"] = time.perf_counter() - t0
     with open(args.out, "w") as fh:
         json.dump(report, fh, indent=1)

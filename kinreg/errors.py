@@ -45,3 +45,7 @@ class OutputError(KinregError):
 
 class EstimationError(KinregError):
     """An adjustment cannot be carried out (singular datum, too few observations)."""
+
+
+class CalibrationRejectedError(EstimationError):
+    """A calibration was computed but fails its acceptance checks (must not be used as it is)."""

@@ -293,6 +293,20 @@ def start_misfit(points_s: FloatArray, stamps_s: FloatArray, index: np.ndarray, 
             math.sqrt(float(chi2.ppf(1 - config.alpha / 2, red)) / red))
 
 
+def check_time_overlap(stamps_s: ArrayLike, trajectory: Trajectory, cloud_source: str | None = None) -> int:
+    """Number of point times outside the trajectory's time range; raises :class:`InputError`
+    (naming the trajectory, with both time ranges) when none lies inside."""
+    t = np.asarray(stamps_s, dtype=np.float64)
+    inside = trajectory.covers(t)
+    if len(t) and not np.any(inside):
+        where = f" of {cloud_source}" if cloud_source else ""
+        raise InputError(
+            f"no point time lies in the trajectory's time range: the points{where} span "
+            f"[{float(t.min()):.3f}, {float(t.max()):.3f}] s, the trajectory [{trajectory.t_start_s:.3f}, "
+            f"{trajectory.t_end_s:.3f}] s", trajectory.source)
+    return int(np.sum(~inside))
+
+
 def calibrate_robust(points_s: ArrayLike, stamps_s: ArrayLike, trajectory: Trajectory,
                      planes: ReferencePlanes, approximate: SystemCalibration,
                      config: CalibrationConfig | None = None,
@@ -314,9 +328,8 @@ def calibrate_robust(points_s: ArrayLike, stamps_s: ArrayLike, trajectory: Traje
     t = np.asarray(stamps_s, dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3 or t.shape != (len(P),):
         raise InputError(f"points must have shape (N, 3) with N times, got {P.shape} and {t.shape}")
+    check_time_overlap(t, trajectory)
     P_l, valid = object_points(P, t, trajectory, approximate)
-    if not np.any(valid):
-        raise InputError("no point lies in the trajectory's time range", trajectory.source)
     index = _first_pass(P_l, valid, planes, cfg)
     logger.info("pass 1: %d of %d points on %d planes", int(np.sum(index >= 0)), len(P), len(planes))
     if np.sum(index >= 0) <= 6:

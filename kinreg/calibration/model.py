@@ -269,6 +269,8 @@ def assign_points_to_planes(points_s: FloatArray, stamps_s: FloatArray, trajecto
                             gate_m: float, ambiguity_factor: float = 3.0) -> np.ndarray:
     """Plane index ``(N,)`` of each point (-1: none) by gating with the approximate calibration.
 
+    The simple assignment for plate-only clouds (see :func:`calibrate_with_gating`).
+
     Points are mapped into the object frame with the measured poses and ``approximate``; a point
     belongs to plane i if it lies within ``gate_m`` of it and farther than
     ``ambiguity_factor * gate_m`` from every other plane. The margin matters: reference planes
@@ -584,6 +586,10 @@ def calibrate_with_gating(points_s: ArrayLike, stamps_s: ArrayLike, trajectory: 
                           gates_m: tuple[float, ...] = (0.05, 0.0125, 0.003)
                           ) -> tuple[CalibrationResult, np.ndarray]:
     """Assign points to planes by gating, estimate, and repeat with the next (smaller) gate.
+
+    Only for clouds that hold nothing but plate points: surfaces round the plates (floor, walls,
+    mounts) defeat it, and its result depends on the gates. The command line uses
+    :func:`~kinreg.calibration.assignment.calibrate_robust`.
 
     The first gate must cover the error of ``approximate`` at the plane distances; later gates
     use the previous estimate and recover the points that were ambiguous or outside at first.

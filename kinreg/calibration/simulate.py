@@ -62,22 +62,27 @@ class RoomConfig:
     A box room: floor at ``floor_z_m``, ceiling at ``ceiling_z_m``, walls at ``y = +-wall_y_m``
     and ``x = +-wall_x_m``. Every plate has a mount: a backing board ``board_scale`` times its
     size, ``board_offset_m`` behind it (parallel: the hardest surface to tell from the plate),
-    and a post ``post_width_m`` wide, vertical, behind the board, down to the floor (plates below
-    ``post_split_z_m``) or up to the ceiling.
+    and a vertical post ``post_width_m`` wide down to the floor (plates below
+    ``post_split_z_m``) or up to the ceiling, standing behind the board by the board's half
+    size (so that it passes behind the plates stacked below or above). A mount that would cut
+    through another plate is an error: such a world cannot be built.
     """
 
     floor_z_m: float = -1.6
     ceiling_z_m: float = 3.3
     wall_y_m: float = 4.0
     wall_x_m: float = 5.0
-    board_scale: float = 1.6
+    board_scale: float = 1.25
     board_offset_m: float = 0.03
     post_width_m: float = 0.06
     post_split_z_m: float = 1.0
 
 
 def room_surfaces(plates: Sequence[PlanePatch], room: RoomConfig) -> tuple[PlanePatch, ...]:
-    """The room's surfaces (:class:`RoomConfig`) round ``plates``, each facing the origin."""
+    """The room's surfaces (:class:`RoomConfig`) round ``plates``, each facing the origin.
+
+    Raises ``ValueError`` if a board or post would cut through a plate.
+    """
     ex, ey, ez = np.eye(3)
     lx, ly = 2.0 * room.wall_x_m, 2.0 * room.wall_y_m
     lz = room.ceiling_z_m - room.floor_z_m
@@ -97,12 +102,12 @@ def room_surfaces(plates: Sequence[PlanePatch], room: RoomConfig) -> tuple[Plane
            box_face("wall_-y", (0.0, -room.wall_y_m, zc), ex, ez, (lx, lz)),
            box_face("wall_+x", (room.wall_x_m, 0.0, zc), ey, ez, (ly, lz)),
            box_face("wall_-x", (-room.wall_x_m, 0.0, zc), ey, ez, (ly, lz))]
+    mounts = []
     for p in plates:
+        board_half = room.board_scale * p.half_size_m
         board_c = p.center_m - room.board_offset_m * p.normal
-        out.append(PlanePatch(f"{p.name}_board", board_c, p.axis_u, p.axis_v, p.normal,
-                              room.board_scale * p.half_size_m))
-        corners = [board_c + su * room.board_scale * p.half_size_m[0] * p.axis_u
-                   + sv * room.board_scale * p.half_size_m[1] * p.axis_v
+        mounts.append(PlanePatch(f"{p.name}_board", board_c, p.axis_u, p.axis_v, p.normal, board_half))
+        corners = [board_c + su * board_half[0] * p.axis_u + sv * board_half[1] * p.axis_v
                    for su in (-1, 1) for sv in (-1, 1)]
         zs = [float(c[2]) for c in corners]
         if p.center_m[2] < room.post_split_z_m:
@@ -111,14 +116,48 @@ def room_surfaces(plates: Sequence[PlanePatch], room: RoomConfig) -> tuple[Plane
             z_a, z_b = max(zs), room.ceiling_z_m
         if z_b - z_a <= 0.0:
             continue
-        horiz = np.array([p.center_m[0], p.center_m[1], 0.0])
+        behind = board_c - (room.board_offset_m + float(np.max(board_half))) * p.normal
+        horiz = np.array([behind[0], behind[1], 0.0])
         n = -horiz / np.linalg.norm(horiz) if np.linalg.norm(horiz) > 1e-9 else -ey
-        behind = board_c - 2.0 * room.board_offset_m * p.normal
         c = np.array([behind[0], behind[1], 0.5 * (z_a + z_b)])
         u = np.cross(ez, n)
-        out.append(PlanePatch(f"{p.name}_post", c, u, np.cross(n, u), n,
-                              np.array([0.5 * room.post_width_m, 0.5 * (z_b - z_a)])))
-    return tuple(out)
+        mounts.append(PlanePatch(f"{p.name}_post", c, u, np.cross(n, u), n,
+                                 np.array([0.5 * room.post_width_m, 0.5 * (z_b - z_a)])))
+    for m in mounts:
+        for p in plates:
+            if rectangles_cross(m, p):
+                raise ValueError(f"the mount {m.name} cuts through plate {p.name}: change the RoomConfig")
+    return tuple(out + mounts)
+
+
+def rectangles_cross(a: PlanePatch, b: PlanePatch) -> bool:
+    """Whether two rectangular patches intersect (share a segment); parallel ones never do.
+
+    >>> from kinreg.calibration.arrangement import PlanePatch
+    >>> h = PlanePatch.from_angles("h", (0, 0, 0), (0, 0, 0), 1.0, facing=None)
+    >>> rectangles_cross(h, PlanePatch.from_angles("v", (0, 0, 0.2), (math.pi / 2, 0, 0), 1.0))
+    True
+    >>> rectangles_cross(h, PlanePatch.from_angles("v", (0, 0, 0.6), (math.pi / 2, 0, 0), 1.0))
+    False
+    """
+    direction = np.cross(a.normal, b.normal)
+    if np.linalg.norm(direction) < 1e-12:
+        return False
+    # A point on both planes: least-norm solution of the two plane equations.
+    A = np.stack([a.normal, b.normal])
+    p0 = np.linalg.lstsq(A, np.array([a.d_m, b.d_m]), rcond=None)[0]
+    lo, hi = -np.inf, np.inf
+    for r in (a, b):
+        for axis, half in ((r.axis_u, r.half_size_m[0]), (r.axis_v, r.half_size_m[1])):
+            k = float(direction @ axis)
+            off = float((p0 - r.center_m) @ axis)
+            if abs(k) < 1e-12:
+                if abs(off) > half:
+                    return False
+                continue
+            s1, s2 = sorted(((-half - off) / k, (half - off) / k))
+            lo, hi = max(lo, s1), min(hi, s2)
+    return lo <= hi
 
 
 @dataclass(frozen=True)
