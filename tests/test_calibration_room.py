@@ -121,6 +121,16 @@ def test_room_puts_the_plates_amid_other_surfaces(room_run):
         assert behind.sum() > 10, plane.name
 
 
+def test_room_refuses_mounts_through_plates():
+    from kinreg.calibration.arrangement import table2_arrangement
+
+    plates = table2_arrangement(3.0, 2.5, *np.radians([45.0, 45.0, 45.0]), size_m=0.35)
+    assert len(room_surfaces(plates, RoomConfig())) == 6 + 16
+    # Boards 1.6 times the plates reach into the plate stacked below (0.4 m apart).
+    with pytest.raises(ValueError, match=r"the mount RP\d+_board cuts through plate RP\d+"):
+        room_surfaces(plates, RoomConfig(board_scale=1.6))
+
+
 def test_old_gating_is_lost_in_the_room_and_the_check_says_so(room_run):
     """The pre-issue-19 assignment (infinite planes, one gate) on the room: the estimate goes
     wrong, and the acceptance check refuses it instead of passing it."""
@@ -156,6 +166,21 @@ def test_robust_calibration_amid_room_does_not_depend_on_the_starting_gate(room_
     assert _wrongly_assigned(sim, a.plane_index) == 0
     assert np.mean(on_plate & (a.plane_index < 0)) / on_plate.mean() < 0.02  # < 2 % of plate points lost
     assert len(a.passes) >= 2 and a.passes[-1].n_assigned > a.passes[0].n_assigned
+
+
+def test_plate_only_cloud_any_starting_gate():
+    """The issue's clean-data case: gates of 10 mm (was 139 mm off) to 100 mm (was 'only 0
+    points') give one and the same result, within 3 sigma, with < 1 % of plate points lost."""
+    sim = simulate_calibration(seed=1)
+    start = SystemCalibration(sim.truth.lever_arm_m + [0.02, -0.01, 0.015],
+                              sim.truth.boresight_rad + np.radians([0.5, -0.3, 0.4]))
+    runs = [calibrate_robust(sim.points_s, sim.stamps_s, sim.trajectory, sim.planes, start,
+                             assignment=AssignmentConfig(gate_m=g)) for g in (0.01, 0.07, 0.1)]
+    for rob in runs[1:]:
+        np.testing.assert_array_equal(rob.plane_index, runs[0].plane_index)
+    res = runs[0].result
+    assert np.all(np.abs(res.calibration.as_vector() - sim.truth.as_vector()) < 3 * res.sigmas)
+    assert np.sum(runs[0].plane_index >= 0) > 0.99 * np.sum(sim.plane_index >= 0)
 
 
 def test_wider_starting_gate_never_loses_points(room_run):

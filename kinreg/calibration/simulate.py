@@ -157,7 +157,7 @@ def rectangles_cross(a: PlanePatch, b: PlanePatch) -> bool:
                 continue
             s1, s2 = sorted(((-half - off) / k, (half - off) / k))
             lo, hi = max(lo, s1), min(hi, s2)
-    return lo <= hi
+    return bool(lo <= hi)
 
 
 @dataclass(frozen=True)
