@@ -10,7 +10,8 @@ calibrated by :func:`~kinreg.calibration.assignment.calibrate_robust` for every 
 - error RMS (mm, mdeg) against the truth, mean reported sigma;
 - honesty: RMS of error / reported sigma (1 when the sigmas are right);
 - share of runs with the error within 3 sigma (per parameter and all six at once);
-- runs the acceptance check rejects (:func:`calibration_problems`), and wrong assignments:
+- runs the acceptance check rejects (:func:`calibration_problems`), runs it accepts although
+  an error exceeds 5 sigma (a wrong result passed), and wrong assignments:
   points given to a plate they do not lie on (by more than 3 mm in the true geometry),
   true plate points left out.
 
@@ -94,6 +95,10 @@ def run(seeds: int, gates_mm: list[float], zenith_step_deg: float, n_profiles: i
             "share_all_six_within_3_sigma": float(np.mean(np.all(inside, axis=1))),
             "global_test_pass_rate": float(np.mean([r["global_test"] for r in rows[g]])),
             "rejected_runs": int(sum(bool(r["problems"]) for r in rows[g])),
+            # "passed wrong": accepted although an error exceeds 5 sigma (chance: ~3e-4 per run)
+            "accepted_runs_with_error_over_5_sigma": int(sum(
+                not r["problems"] and bool(np.any(np.abs(np.array(r["error"]) / r["sigma"]) > 5.0))
+                for r in rows[g])),
             "sigma0_mean": float(np.mean([r["sigma0"] for r in rows[g]])),
             "wrong_assigned_points_total": int(sum(r["n_wrong_3mm"] for r in rows[g])),
             "plate_points_missed_share": float(sum(r["n_plate_points_missed"] for r in rows[g])
@@ -137,7 +142,8 @@ def main() -> None:
         json.dump(report, fh, indent=1)
     for g, s in report["summary"].items():
         print(f"gate {g} mm: all six within 3 sigma {s['share_all_six_within_3_sigma']:.3f}, rejected "
-              f"{s['rejected_runs']}, wrong points {s['wrong_assigned_points_total']}")
+              f"{s['rejected_runs']}, accepted but > 5 sigma off {s['accepted_runs_with_error_over_5_sigma']}, "
+              f"wrong points {s['wrong_assigned_points_total']}")
         for name in PARAMETER_NAMES:
             print(f"  {name:6s} error RMS {s['error_rms'][name]:.4f}  error/sigma RMS "
                   f"{s['error_over_sigma_rms'][name]:.3f}  within 3 sigma {s['share_within_3_sigma'][name]:.3f}")

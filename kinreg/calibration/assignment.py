@@ -17,10 +17,11 @@ reference planes coarse to fine:
 2. **Adjustment with data snooping.** The Gauss-Helmert adjustment (:mod:`.model`) on those
    points; points whose standardised residual exceeds ``c`` are removed, worst first (all
    within half the largest), and the adjustment repeated until none is left.
-3. **Passes 2.., from the estimate.** Every point in a plane's extent is tested against that
-   plane with the current estimate: it belongs to the plane if its distance is within
-   ``c * sqrt(sigma0'^2 var_obs + var_prop)``, ``var_obs`` from the scanner and tracker noise,
-   ``var_prop`` the estimate's covariance propagated to the point, ``sigma0' = max(1, sigma0)``.
+3. **Passes 2.., from the estimate.** Every point in a plane's search region (extent and depth
+   as in pass 1) is tested against that plane with the current estimate: it belongs to the
+   plane if its distance is within ``c * sigma0' * sqrt(var_obs + var_prop)``, ``var_obs`` from
+   the scanner and tracker noise, ``var_prop`` the estimate's covariance propagated to the
+   point, ``sigma0' = max(1, sigma0)``.
    The gate narrows as the estimate sharpens and never depends on the starting gate; step 2
    follows; the passes stop when the assignment no longer changes.
 
@@ -233,7 +234,10 @@ def _gated_pass(points_s: FloatArray, stamps_s: FloatArray, trajectory: Trajecto
                 cfg: AssignmentConfig) -> np.ndarray:
     cal = result.calibration
     P_l, valid = object_points(points_s, stamps_s, trajectory, cal)
-    ext = _in_extents(P_l, valid, planes)
+    # The search region of pass 1 (extent x depth) bounds every pass: cheap to test first.
+    with np.errstate(invalid="ignore"):
+        near = np.abs(P_l @ planes.normals.T - planes.d_m) <= _search_depths(planes, cfg.gate_m)
+    ext = _in_extents(P_l, valid, planes) & near
     rows, cols = np.nonzero(ext)
     score = np.full(ext.shape, np.inf)
     if len(rows) == 0:
