@@ -364,7 +364,7 @@ def test_cli_refuses_parallel_planes(tmp_path, capsys):
     code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(sim.truth), "--out", tmp_path / "out"], capsys)
     assert code == 1 and err.count("\n") == 1
-    assert "do not determine the calibration parameter(s)" in err
+    assert err.startswith(f"kinreg: error: {cloud}: the data do not determine the calibration parameter(s)")
 
 
 def test_cli_e57_without_scans(tmp_path, capsys, small_room_run):
@@ -432,3 +432,26 @@ def test_cli_unseen_plane_in_the_file_is_refused(tmp_path, capsys, small_room_ru
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     assert code == 1 and err.count("\n") == 1
     assert "too few points (< 30) on plane(s) far_away (0)" in err
+
+
+@pytest.mark.parametrize(("lever_off_m", "angle_off_deg"), [(0.5, 10.0), (0.1, 3.0)])
+def test_cli_far_starting_values_never_exit_0_with_a_wrong_result(tmp_path, capsys, small_room_run,
+                                                                  lever_off_m, angle_off_deg):
+    """Starting values far outside what the assignment can recover: either a result within
+    5 sigma of the truth (exit 0) or one error line (exit 1), never a wrong result with exit 0."""
+    sim, _ = small_room_run
+    start = SystemCalibration(sim.truth.lever_arm_m + lever_off_m * np.array([0.6, -0.64, 0.48]),
+                              sim.truth.boresight_rad + np.radians(angle_off_deg) * np.array([1, -1, 1]))
+    cloud, traj, planes = _write_inputs(tmp_path, sim)
+    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+                         *_start_args(start), "--out", tmp_path / "out"], capsys)
+    if code == 0:
+        rep = json.loads((tmp_path / "out" / "calibration.json").read_text())
+        names = ("tx", "ty", "tz")
+        est = np.array([rep["parameters"][n]["value"] for n in names]) * 1e-3
+        sig = np.array([rep["parameters"][n]["sigma"] for n in names]) * 1e-3
+        assert np.all(np.abs(est - sim.truth.lever_arm_m) < 5 * sig + 2e-6)
+    else:
+        assert code == 1 and err.count("\n") == 1 and err.startswith(f"kinreg: error: {cloud}: ")
+    if lever_off_m >= 0.5:
+        assert code == 1  # half a metre off: no plate can be found

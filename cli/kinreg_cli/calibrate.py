@@ -17,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from kinreg.errors import CloudError, ConfigError, InputError
+from kinreg.errors import CloudError, ConfigError, EstimationError, InputError
 
 console = Console()
 
@@ -149,20 +149,26 @@ def calibrate(
     if n_outside:
         _warn(f"{cloud}: {n_outside} of {len(stamps)} points lie outside the trajectory's time range "
               f"[{traj.t_start_s:.3f}, {traj.t_end_s:.3f}] s ({trajectory}) and are left out")
-    if plane_index is not None:
-        idx = _read_plane_index(plane_index, len(points), len(ref))
-        result = estimate_calibration(points, stamps, idx, traj, ref, approx, cfg)
-        misfit, upper = start_misfit(points, stamps, np.where(traj.covers(stamps), idx, -1), traj, ref,
-                                     approx, cfg)
-        robust = RobustCalibration(result, idx, (), misfit, upper, approx)
-    else:
-        unbounded = [p.name for p in ref.planes if p.extent is None]
-        if unbounded:
-            _warn(f"{planes}: plane(s) {', '.join(unbounded)} have no extent: room surfaces near their "
-                  "infinite planes can be taken for them (give each plate's extent)")
-        robust = calibrate_robust(points, stamps, traj, ref, approx, cfg,
-                                  AssignmentConfig(gate_m=gate_mm * 1e-3, alpha=alpha))
-        result = robust.result
+    try:
+        if plane_index is not None:
+            idx = _read_plane_index(plane_index, len(points), len(ref))
+            result = estimate_calibration(points, stamps, idx, traj, ref, approx, cfg)
+            misfit, upper = start_misfit(points, stamps, np.where(traj.covers(stamps), idx, -1), traj, ref,
+                                         approx, cfg)
+            robust = RobustCalibration(result, idx, (), misfit, upper, approx)
+        else:
+            unbounded = [p.name for p in ref.planes if p.extent is None]
+            if unbounded:
+                _warn(f"{planes}: plane(s) {', '.join(unbounded)} have no extent: room surfaces near their "
+                      "infinite planes can be taken for them (give each plate's extent)")
+            robust = calibrate_robust(points, stamps, traj, ref, approx, cfg,
+                                      AssignmentConfig(gate_m=gate_mm * 1e-3, alpha=alpha))
+            result = robust.result
+    except EstimationError as e:
+        # The adjustment does not know the file; the one error line must name it.
+        if e.path is None:
+            raise type(e)(e.reason, cloud) from None
+        raise
     problems = calibration_problems(robust, ref, cfg)
     if problems and not accept_rejected:
         raise CalibrationRejectedError("calibration rejected: " + "; ".join(problems)

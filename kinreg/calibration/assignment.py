@@ -276,6 +276,9 @@ def _adjust_with_snooping(points_s: FloatArray, stamps_s: FloatArray, index: np.
         bad = used & (w > max(crit, 0.5 * w_max))
         idx[bad] = -1
         n_removed += int(bad.sum())
+        if np.sum(idx >= 0) <= 6:
+            raise EstimationError(f"the data snooping rejected all but {int(np.sum(idx >= 0))} points: no "
+                                  "consistent set of plate points (starting values too far off?)")
     logger.warning("data snooping still finds outliers after %d rounds", cfg.max_snooping_rounds)
     return result, idx, n_removed, cfg.max_snooping_rounds
 
@@ -345,6 +348,11 @@ def calibrate_robust(points_s: ArrayLike, stamps_s: ArrayLike, trajectory: Traje
     current = approximate
     seen: list[np.ndarray] = []
     for k in range(cfg.max_passes):
+        if np.sum(index >= 0) <= 6:
+            raise EstimationError(
+                f"the reference plates' points were lost in pass {k + 1} (only {int(np.sum(index >= 0))} "
+                "left within the gates): the estimate ran away; are the starting values within the plates' "
+                "search depth and the extents right?")
         result, used, n_snooped, rounds = _adjust_with_snooping(P, t, index, trajectory, planes, current,
                                                                 config, cfg)
         passes.append(AssignmentPass(int(np.sum(index >= 0)), n_snooped, result.sigma0, rounds))
