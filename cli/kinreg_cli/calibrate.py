@@ -75,7 +75,8 @@ def calibrate(
                                         "times (LAS/LAZ/E57).")],
     trajectory: Annotated[Path, typer.Option("--trajectory", help="Tracker poses T_l_b (any "
                                              "trajectory format kinreg reads).")],
-    planes: Annotated[Path, typer.Option("--planes", help="Reference planes (TOML) in the object frame.")],
+    planes: Annotated[Path, typer.Option("--planes", help="Reference planes (TOML) in the object frame, "
+                                         "each plate with its extent (centre + size or polygon).")],
     lever_arm: Annotated[str, typer.Option(help="Approximate lever arm tx,ty,tz in metres.")],
     boresight_deg: Annotated[str, typer.Option(help="Approximate omega,phi,kappa in degrees.")],
     out: Annotated[Path, typer.Option("--out", help="Folder for calibration.json/.txt.")],
