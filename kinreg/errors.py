@@ -58,3 +58,7 @@ class AdjustmentFailedError(EstimationError):
     def __init__(self, reason: str, result: BlockResult) -> None:
         super().__init__(reason)
         self.result = result
+
+
+class CalibrationRejectedError(EstimationError):
+    """A calibration was computed but fails its acceptance checks (must not be used as it is)."""

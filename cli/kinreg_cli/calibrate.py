@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import enum
 import math
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -16,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from kinreg.errors import CloudError, ConfigError, InputError
+from kinreg.errors import CloudError, ConfigError, EstimationError, InputError
 
 console = Console()
 
@@ -36,15 +37,19 @@ def _read_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     xyz, t = [], []
     with open_cloud(path, require_time=True) as reader:
+        n_scans = reader.info.n_scans
         for chunk in reader.iter_chunks():
             xyz.append(chunk.xyz)
             if chunk.stamps_s is None:  # not reached: require_time=True
                 raise CloudError("the points have no time stamps", path)
             t.append(chunk.stamps_s)
+    if not xyz:
+        what = "holds no scans" if n_scans == 0 else "holds no points"
+        raise CloudError(f"{what}: nothing to calibrate with", path)
     return np.concatenate(xyz), np.concatenate(t)
 
 
-def _read_plane_index(path: Path, n: int) -> np.ndarray:
+def _read_plane_index(path: Path, n: int, n_planes: int) -> np.ndarray:
     try:
         idx = np.load(path) if path.suffix == ".npy" else np.loadtxt(path, dtype=np.int64, ndmin=1)
     except (OSError, ValueError) as e:
@@ -52,7 +57,17 @@ def _read_plane_index(path: Path, n: int) -> np.ndarray:
     idx = np.asarray(idx, dtype=np.int64).ravel()
     if len(idx) != n:
         raise InputError(f"{len(idx)} plane indices for {n} points", path)
+    bad = (idx < -1) | (idx >= n_planes)
+    if np.any(bad):
+        raise InputError(f"{int(bad.sum())} plane indices outside -1..{n_planes - 1} (the planes file has "
+                         f"{n_planes} planes), e.g. {int(idx[bad][0])} at point {int(np.flatnonzero(bad)[0])}",
+                         path)
     return idx
+
+
+def _warn(message: str) -> None:
+    # Plain print to stderr like the error line: a warning must not be wrapped or lost in a table.
+    print(f"kinreg: warning: {message}", file=sys.stderr)
 
 
 def calibrate(
@@ -60,15 +75,17 @@ def calibrate(
                                         "times (LAS/LAZ/E57).")],
     trajectory: Annotated[Path, typer.Option("--trajectory", help="Tracker poses T_l_b (any "
                                              "trajectory format kinreg reads).")],
-    planes: Annotated[Path, typer.Option("--planes", help="Reference planes (TOML) in the object frame.")],
+    planes: Annotated[Path, typer.Option("--planes", help="Reference planes (TOML) in the object frame, "
+                                         "each plate with its extent (centre + size or polygon).")],
     lever_arm: Annotated[str, typer.Option(help="Approximate lever arm tx,ty,tz in metres.")],
     boresight_deg: Annotated[str, typer.Option(help="Approximate omega,phi,kappa in degrees.")],
     out: Annotated[Path, typer.Option("--out", help="Folder for calibration.json/.txt.")],
     plane_index: Annotated[Path | None, typer.Option(help="Plane index per point (.npy or text, "
                                                       "-1 = none); else points are gated.")] = None,
-    gate_mm: Annotated[float, typer.Option(help="First gate for assigning points to planes; it "
-                                           "must cover the error of the approximate values. Two "
-                                           "more passes use 1/4 and 1/16 of it.")] = 50.0,
+    gate_mm: Annotated[float, typer.Option(help="Starting gate: the widest distance from a plate "
+                                           "(as found in the data inside the plane's extent) "
+                                           "accepted in the first pass; later passes gate with "
+                                           "the estimate's propagated uncertainty.")] = 50.0,
     sigma_d_mm: Annotated[float, typer.Option(help="Scanner range sigma.")] = 0.5,
     sigma_angle_mdeg: Annotated[float, typer.Option(help="Scanner angle sigma (phi and theta).")] = 4.0,
     tracker_sigma_t_um: Annotated[float, typer.Option(help="Tracker translation sigma per axis.")] = 7.8,
@@ -79,19 +96,38 @@ def calibrate(
                                                            "with --observe-planes.")] = 10.0,
     trajectory_format: Annotated[str | None, typer.Option(help="Trajectory format (guessed).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace existing report files.")] = False,
+    alpha: Annotated[float, typer.Option(help="Significance level of the global test and "
+                                         "family-wise level of the data snooping: a correct "
+                                         "calibration is refused with this probability.")] = 0.05,
+    accept_rejected: Annotated[bool, typer.Option(help="Keep a calibration that fails the "
+                                                  "acceptance checks (marked REJECTED in the "
+                                                  "report) instead of exit 1.")] = False,
 ) -> None:
-    """Estimate lever arm and boresight from scans of reference planes (Gauss-Helmert model)."""
+    """Estimate lever arm and boresight from scans of reference planes (Gauss-Helmert model).
+
+    Refuses (exit 1) a result with too few points on a plane, a failed global test, no
+    convergence, or an estimate that stayed at starting values the data contradict, unless
+    --accept-rejected.
+    """
     from kinreg.calibration import (
         CalibrationConfig,
         ScannerSigmas,
         SystemCalibration,
         TrackerSigmas,
-        calibrate_with_gating,
         calibration_report,
         calibration_text,
         estimate_calibration,
         write_report,
     )
+    from kinreg.calibration.assignment import (
+        AssignmentConfig,
+        RobustCalibration,
+        calibrate_robust,
+        calibration_problems,
+        check_time_overlap,
+        start_misfit,
+    )
+    from kinreg.errors import CalibrationRejectedError
     from kinreg.io.reference_planes import read_reference_planes
     from kinreg.io.trajectory import read_trajectory
 
@@ -106,17 +142,41 @@ def calibrate(
         tracker=TrackerSigmas(tracker_sigma_t_um * 1e-6, math.radians(tracker_sigma_rot_mdeg * 1e-3)),
         plane_sigma_d_m=ref.accuracy_m if observe_planes else None,
         plane_sigma_normal_rad=math.radians(plane_sigma_normal_mdeg * 1e-3) if observe_planes else None,
+        alpha=alpha,
     )
-    if plane_index is not None:
-        idx = _read_plane_index(plane_index, len(points))
-        result = estimate_calibration(points, stamps, idx, traj, ref, approx, cfg)
-    else:
-        gate = gate_mm * 1e-3
-        result, idx = calibrate_with_gating(points, stamps, traj, ref, approx, cfg,
-                                            (gate, gate / 4, gate / 16))
+    if not 0.0 < alpha < 1.0:
+        raise ConfigError(f"--alpha must lie between 0 and 1, got {alpha}")
+    n_outside = check_time_overlap(stamps, traj, str(cloud))
+    if n_outside:
+        _warn(f"{cloud}: {n_outside} of {len(stamps)} points lie outside the trajectory's time range "
+              f"[{traj.t_start_s:.3f}, {traj.t_end_s:.3f}] s ({trajectory}) and are left out")
+    try:
+        if plane_index is not None:
+            idx = _read_plane_index(plane_index, len(points), len(ref))
+            result = estimate_calibration(points, stamps, idx, traj, ref, approx, cfg)
+            misfit, upper = start_misfit(points, stamps, np.where(traj.covers(stamps), idx, -1), traj, ref,
+                                         approx, cfg)
+            robust = RobustCalibration(result, idx, (), misfit, upper, approx)
+        else:
+            unbounded = [p.name for p in ref.planes if p.extent is None]
+            if unbounded:
+                _warn(f"{planes}: plane(s) {', '.join(unbounded)} have no extent: room surfaces near their "
+                      "infinite planes can be taken for them (give each plate's extent)")
+            robust = calibrate_robust(points, stamps, traj, ref, approx, cfg,
+                                      AssignmentConfig(gate_m=gate_mm * 1e-3, alpha=alpha))
+            result = robust.result
+    except EstimationError as e:
+        # The adjustment does not know the file; the one error line must name it.
+        if e.path is None:
+            raise type(e)(e.reason, cloud) from None
+        raise
+    problems = calibration_problems(robust, ref, cfg)
+    if problems and not accept_rejected:
+        raise CalibrationRejectedError("calibration rejected: " + "; ".join(problems)
+                                  + " (--accept-rejected keeps it)", cloud)
     report = calibration_report(result, cfg, {"cloud": str(cloud), "trajectory": str(trajectory),
-                                              "planes": str(planes)})
-    write_report(out, "calibration", report, calibration_text(result), overwrite=overwrite)
+                                              "planes": str(planes)}, robust=robust, problems=problems)
+    write_report(out, "calibration", report, calibration_text(result, problems), overwrite=overwrite)
 
     table = Table(title="system calibration")
     for col in ("parameter", "value", "sigma"):
@@ -125,8 +185,10 @@ def calibrate(
         table.add_row(name, f"{p['value']:.4f} {p['unit']}", f"{p['sigma']:.4f} {p['sigma_unit']}")
     console.print(table)
     gt = result.global_test
-    console.print(f"sigma0 {result.sigma0:.3f}, global test {'passed' if gt.passed else 'REJECTED'}; "
+    console.print(f"sigma0 {result.sigma0:.3f}, global test {'passed' if gt.passed else 'failed'}; "
                   f"report in {out}")
+    if problems:
+        _warn(f"{cloud}: calibration REJECTED but kept (--accept-rejected): " + "; ".join(problems))
 
 
 class PlanMethod(str, enum.Enum):

@@ -3,6 +3,8 @@ and planning of the calibration field (seed 000; METHOD.md section 3).
 
 Public API:
 
+- :func:`calibrate_robust` (points found amid the room, coarse to fine, then the adjustment),
+  :func:`calibration_problems` (why a result must not be used), :class:`AssignmentConfig`.
 - :func:`estimate_calibration` (Gauss-Helmert adjustment), :func:`assign_points_to_planes`,
   :class:`SystemCalibration`, :class:`CalibrationConfig`, :class:`CalibrationResult`.
 - :func:`evaluate_arrangement`, :func:`exhaustive_search`, :func:`optimise_evolution`,
@@ -13,6 +15,12 @@ Public API:
 """
 
 from kinreg.calibration.arrangement import PlanePatch, read_arrangement, table2_arrangement
+from kinreg.calibration.assignment import (
+    AssignmentConfig,
+    RobustCalibration,
+    calibrate_robust,
+    calibration_problems,
+)
 from kinreg.calibration.model import (
     PARAMETER_NAMES,
     CalibrationConfig,
@@ -40,16 +48,25 @@ from kinreg.calibration.report import (
     planning_text,
     write_report,
 )
-from kinreg.calibration.simulate import SimulatedCalibration, SimulationConfig, simulate_calibration
+from kinreg.calibration.simulate import (
+    RoomConfig,
+    SimulatedCalibration,
+    SimulationConfig,
+    room_scenario,
+    simulate_calibration,
+)
 
 __all__ = [
     "PARAMETER_NAMES",
     "ArrangementQuality",
+    "AssignmentConfig",
     "CalibrationConfig",
     "CalibrationResult",
     "GridResult",
     "PlanePatch",
     "PlanningConfig",
+    "RobustCalibration",
+    "RoomConfig",
     "ScannerSigmas",
     "SimulatedCalibration",
     "SimulationConfig",
@@ -57,7 +74,9 @@ __all__ = [
     "Table3Grid",
     "TrackerSigmas",
     "assign_points_to_planes",
+    "calibrate_robust",
     "calibrate_with_gating",
+    "calibration_problems",
     "calibration_report",
     "calibration_text",
     "estimate_calibration",
@@ -67,6 +86,7 @@ __all__ = [
     "planning_report",
     "planning_text",
     "read_arrangement",
+    "room_scenario",
     "simulate_calibration",
     "table2_arrangement",
     "write_report",

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 
 from kinreg.errors import ConfigError
 from kinreg.geometry import FloatArray
-from kinreg.io.reference_planes import ReferencePlane, ReferencePlanes
+from kinreg.io.reference_planes import PlaneExtent, ReferencePlane, ReferencePlanes
 
 logger = logging.getLogger(__name__)
 
@@ -103,7 +103,11 @@ class PlanePatch:
         return float(self.normal @ self.center_m)
 
     def as_reference_plane(self) -> ReferencePlane:
-        return ReferencePlane(self.name, self.normal.copy(), self.d_m)
+        """The patch's plane with the patch as its extent."""
+        hu, hv = self.half_size_m
+        poly = np.array([[-hu, -hv], [hu, -hv], [hu, hv], [-hu, hv]])
+        extent = PlaneExtent(self.center_m.copy(), self.axis_u.copy(), self.axis_v.copy(), poly)
+        return ReferencePlane(self.name, self.normal.copy(), self.d_m, extent)
 
     def transformed(self, R: FloatArray, t: FloatArray) -> PlanePatch:
         """The patch mapped by ``x' = R x + t``."""

@@ -181,6 +181,10 @@ class CalibrationConfig:
     # a direction counts as undetermined: its sigma would be > 1e4 times the best one. Tracker
     # noise alone makes parallel planes "determined" at ~1e-9, so this must stay well above it.
     rank_tolerance: float = 1e-8
+    # Acceptance (:func:`~kinreg.calibration.assignment.calibration_problems`): a plate that was
+    # scanned gives hundreds of points per second of profiles; fewer than this means it was
+    # missed or its points were not found, and its planes' leverage is gone.
+    min_points_per_plane: int = 30
 
 
 # --------------------------------------------------------------------------- results
@@ -243,6 +247,9 @@ class CalibrationResult(CovarianceFigures):
     iterations: int
     converged: bool
     plane_corrections: FloatArray | None = None  # (k, 3): tilt u, tilt v (rad), offset (m)
+    # A-priori sigma (N,) of each point's misclosure from the scanner noise (nan for points not
+    # used): residuals_m / residual_sigma_m is the standardised residual of the data snooping.
+    residual_sigma_m: FloatArray | None = None
 
 
 
@@ -261,6 +268,8 @@ def assign_points_to_planes(points_s: FloatArray, stamps_s: FloatArray, trajecto
                             planes: ReferencePlanes, approximate: SystemCalibration,
                             gate_m: float, ambiguity_factor: float = 3.0) -> np.ndarray:
     """Plane index ``(N,)`` of each point (-1: none) by gating with the approximate calibration.
+
+    The simple assignment for plate-only clouds (see :func:`calibrate_with_gating`).
 
     Points are mapped into the object frame with the measured poses and ``approximate``; a point
     belongs to plane i if it lies within ``gate_m`` of it and farther than
@@ -534,6 +543,8 @@ def estimate_calibration(points_s: ArrayLike, stamps_s: ArrayLike, plane_index: 
     # Orthogonal residual of each point to its (adjusted) plane: the final misclosure f.
     resid = np.full(len(P_all), np.nan)
     resid[used] = f
+    resid_sigma = np.full(len(P_all), np.nan)
+    resid_sigma[used] = np.sqrt(var)
     stats = []
     for i, pl in enumerate(planes.planes):
         sel = plane == i
@@ -549,7 +560,7 @@ def estimate_calibration(points_s: ArrayLike, stamps_s: ArrayLike, plane_index: 
         calibration=SystemCalibration.from_vector(x), covariance=cov, sigma0=sigma0,
         redundancy=redundancy, global_test=test, plane_stats=tuple(stats), residuals_m=resid,
         n_points=N, n_epochs=E, iterations=it, converged=converged,
-        plane_corrections=q.copy() if observe_planes else None)
+        plane_corrections=q.copy() if observe_planes else None, residual_sigma_m=resid_sigma)
 
 
 def _chol_solve(L: FloatArray, b: FloatArray) -> FloatArray:
@@ -575,6 +586,10 @@ def calibrate_with_gating(points_s: ArrayLike, stamps_s: ArrayLike, trajectory: 
                           gates_m: tuple[float, ...] = (0.05, 0.0125, 0.003)
                           ) -> tuple[CalibrationResult, np.ndarray]:
     """Assign points to planes by gating, estimate, and repeat with the next (smaller) gate.
+
+    Only for clouds that hold nothing but plate points: surfaces round the plates (floor, walls,
+    mounts) defeat it, and its result depends on the gates. The command line uses
+    :func:`~kinreg.calibration.assignment.calibrate_robust`.
 
     The first gate must cover the error of ``approximate`` at the plane distances; later gates
     use the previous estimate and recover the points that were ambiguous or outside at first.

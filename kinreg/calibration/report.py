@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from kinreg.calibration.assignment import RobustCalibration, moved_sigmas
 from kinreg.calibration.model import PARAMETER_NAMES, CalibrationConfig, CalibrationResult
 from kinreg.calibration.planning import (
     FITNESS_NAMES,
@@ -41,8 +42,14 @@ def _sigma_display(values: np.ndarray) -> list[float]:
 
 
 def calibration_report(result: CalibrationResult, config: CalibrationConfig | None = None,
-                       inputs: dict[str, str] | None = None) -> dict[str, Any]:
-    """The calibration result as a JSON-ready dict (schema :data:`REPORT_SCHEMA_VERSION`)."""
+                       inputs: dict[str, str] | None = None, robust: RobustCalibration | None = None,
+                       problems: list[str] | None = None) -> dict[str, Any]:
+    """The calibration result as a JSON-ready dict (schema :data:`REPORT_SCHEMA_VERSION`).
+
+    ``problems`` (from :func:`~kinreg.calibration.assignment.calibration_problems`): a non-empty
+    list marks the result ``"accepted": false`` (kept on request); ``robust`` adds the point
+    assignment's passes and how far the estimate moved from the starting values.
+    """
     x = result.calibration.as_vector()
     est = _param_display(x)
     sig = _sigma_display(result.sigmas)
@@ -69,12 +76,25 @@ def calibration_report(result: CalibrationResult, config: CalibrationConfig | No
         "converged": result.converged,
         "planes": [asdict(s) for s in result.plane_stats],
         "config": asdict(config) if config else None,
+        "accepted": not problems,
+        "rejection_reasons": list(problems or []),
+        "assignment": None if robust is None else {
+            "passes": [asdict(p) for p in robust.passes],
+            "start_sigma0": robust.start_misfit,
+            "start_sigma0_upper_bound": robust.start_misfit_upper,
+            "moved_from_start_in_sigmas": moved_sigmas(robust),
+            "points_outside_trajectory_time": robust.n_outside_time,
+            "planes_without_extent": list(robust.unbounded_planes),
+        },
     }
 
 
-def calibration_text(result: CalibrationResult) -> str:
-    """A plain-text summary of the calibration (for the report file and logs)."""
+def calibration_text(result: CalibrationResult, problems: list[str] | None = None) -> str:
+    """A plain-text summary of the calibration (for the report file and logs); ``problems``
+    marks it REJECTED at the top."""
     lines = ["kinreg system calibration (lever arm + boresight)", ""]
+    if problems:
+        lines += ["REJECTED (kept with --accept-rejected): " + "; ".join(problems), ""]
     est = _param_display(result.calibration.as_vector())
     sig = _sigma_display(result.sigmas)
     for name, v, s in zip(PARAMETER_NAMES, est, sig, strict=True):

@@ -14,6 +14,12 @@ keeps everything the file says, including ``[[link]]`` entries it does not inter
     name = "slanted_roof"
     normal = [0.0, 0.5, 0.866]   # a general plane n . x = d: normal is a direction
     d_m = 2.5                    # (normalised on reading), d_m the distance along the unit normal
+    [[plane]]                    # a finite plate of a calibration field: give its extent
+    name = "RP1"
+    normal = [0.0, -0.7071, 0.7071]
+    d_m = 1.5
+    extent = { center_m = [0.0, 3.0, -0.8], size_m = [0.35, 0.35], axis_u = [1.0, 0.0, 0.0] }
+    # or: extent = { polygon_m = [[x, y, z], [x, y, z], [x, y, z], ...] }  (corners, in order)
     [[link]]
     station = "qs_00012"
     plane = "p3"
@@ -24,6 +30,13 @@ keeps everything the file says, including ``[[link]]`` entries it does not inter
 
 A plane is ``n . x = d`` with ``|n| = 1`` in metres. An axis plane with ``normal_sign = -1`` at
 ``offset_m = c`` has ``n = -e_axis`` and ``d = -c`` (the same geometric plane, opposite face).
+
+``extent`` (optional, any plane) says where on its infinite plane the physical plate lies: a
+rectangle ``center_m`` + ``size_m`` (side, or ``[u, v]`` sides) with ``axis_u`` the direction of
+the u side (optional: default the horizontal direction in the plane, or x for a horizontal
+plane), or a polygon ``polygon_m`` of at least three corners in order. Centre and corners are
+projected onto the plane; a centre or corner farther than :data:`EXTENT_OFF_PLANE_M` from the
+plane is an error (the extent belongs to another plane). Files without extents read as before.
 
 ``[initial_transform]`` is the rough pose ``T_ref_traj`` of the trajectory's (SLAM) frame in the
 planes' frame, ``x_ref = R x_traj + t``, for data whose frame is arbitrary. Either
@@ -65,6 +78,92 @@ _MIN_NORMAL_NORM = 1e-9
 # Largest |R^T R - I| element accepted for the rotation of an [initial_transform] matrix: loose
 # enough for matrices printed with 6 decimals, tight enough to catch scale and shear.
 MATRIX_TOLERANCE = 1e-5
+# Largest distance of an extent's centre or corner from its plane: a drawing's coordinates of a
+# plate lie on its plane within millimetres; 5 cm off means the extent belongs elsewhere.
+EXTENT_OFF_PLANE_M = 0.05
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneExtent:
+    """Where a reference plane's physical plate lies: a polygon in the plane.
+
+    ``origin_m`` (3,) a point on the plane, ``axis_u``/``axis_v`` (3,) orthonormal in-plane axes,
+    ``polygon_uv`` (M, 2) the corners in those axes (metres, M >= 3, in order).
+    """
+
+    origin_m: FloatArray
+    axis_u: FloatArray
+    axis_v: FloatArray
+    polygon_uv: FloatArray
+
+    @property
+    def area_m2(self) -> float:
+        x, y = self.polygon_uv[:, 0], self.polygon_uv[:, 1]
+        return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+    @property
+    def corners_m(self) -> FloatArray:
+        """Corners ``(M, 3)`` in the object frame."""
+        return self.origin_m + self.polygon_uv[:, :1] * self.axis_u + self.polygon_uv[:, 1:] * self.axis_v
+
+    def to_uv(self, points_xyz: FloatArray) -> FloatArray:
+        """In-plane coordinates ``(N, 2)`` of object-frame points ``(N, 3)`` (projected)."""
+        d = np.asarray(points_xyz, dtype=np.float64) - self.origin_m
+        return np.stack([d @ self.axis_u, d @ self.axis_v], axis=-1)
+
+    def contains(self, points_xyz: FloatArray, margin_m: float = 0.0) -> np.ndarray:
+        """Which points ``(N, 3)`` project into the polygon grown by ``margin_m`` (>= 0).
+
+        >>> e = PlaneExtent(np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+        ...                 np.array([[-1.0, -1], [1, -1], [1, 1], [-1, 1]]))
+        >>> e.contains(np.array([[0.5, 0.5, 3.0], [1.05, 0.0, 0.0]]), margin_m=0.1).tolist()
+        [True, True]
+        """
+        uv = self.to_uv(points_xyz)
+        return _inside_polygon(uv, self.polygon_uv, margin_m)
+
+
+def _inside_polygon(uv: FloatArray, poly: FloatArray, margin_m: float) -> np.ndarray:
+    # Crossing number, then (for a margin) the distance to every edge.
+    x, y = uv[:, 0], uv[:, 1]
+    inside = np.zeros(len(uv), dtype=bool)
+    a, b = poly, np.roll(poly, -1, axis=0)
+    for (xa, ya), (xb, yb) in zip(a, b, strict=True):
+        crosses = (ya > y) != (yb > y)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x_cross = xa + (y - ya) * (xb - xa) / (yb - ya)
+        inside ^= crosses & (x < x_cross)
+    if margin_m > 0.0:
+        for pa, pb in zip(a, b, strict=True):
+            e = pb - pa
+            s = np.clip(((uv - pa) @ e) / float(e @ e), 0.0, 1.0)
+            inside |= np.linalg.norm(uv - (pa + s[:, None] * e), axis=1) <= margin_m
+    return inside
+
+
+def rectangle_extent(normal: FloatArray, d_m: float, center_m: FloatArray, size_uv_m: FloatArray,
+                     axis_u: FloatArray | None = None) -> PlaneExtent:
+    """Rectangular :class:`PlaneExtent` on the plane ``normal . x = d_m``: centre (projected),
+    sides ``size_uv_m`` (2,) along ``axis_u`` (projected into the plane; default horizontal)."""
+    n = np.asarray(normal, dtype=np.float64)
+    c = np.asarray(center_m, dtype=np.float64)
+    c = c - (c @ n - d_m) * n
+    u = _in_plane_axis(n, axis_u)
+    su, sv = 0.5 * np.asarray(size_uv_m, dtype=np.float64)
+    poly = np.array([[-su, -sv], [su, -sv], [su, sv], [-su, sv]])
+    return PlaneExtent(c, u, np.cross(n, u), poly)
+
+
+def _in_plane_axis(n: FloatArray, axis_u: FloatArray | None) -> FloatArray:
+    if axis_u is None:
+        a = np.cross(np.array([0.0, 0.0, 1.0]), n)  # horizontal in the plane
+        axis_u = a if np.linalg.norm(a) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    u = np.asarray(axis_u, dtype=np.float64)
+    u = u - (u @ n) * n
+    norm = float(np.linalg.norm(u))
+    if norm < 1e-6:
+        raise ValueError("axis_u is (nearly) along the normal")
+    return u / norm
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,6 +173,7 @@ class ReferencePlane:
     name: str
     normal: FloatArray
     d_m: float
+    extent: PlaneExtent | None = None  # the plate's polygon; None: the plane is unbounded
 
     def distance_m(self, points_xyz: FloatArray) -> FloatArray:
         """Signed distances ``(N,)`` of object-frame points ``(N, 3)`` to the plane, metres."""
@@ -222,7 +322,7 @@ def _parse_plane(entry: Any, i: int, source: str | None) -> ReferencePlane:
     where = f"plane '{name}'"
     axis_keys = {"axis", "offset_m", "normal_sign"}
     general_keys = {"normal", "d_m"}
-    allowed = {"name"} | axis_keys | general_keys
+    allowed = {"name", "extent"} | axis_keys | general_keys
     unknown = sorted(set(entry) - allowed)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}", source)
@@ -244,7 +344,8 @@ def _parse_plane(entry: Any, i: int, source: str | None) -> ReferencePlane:
             raise ConfigError(f"{where}: normal_sign must be +1 or -1, got {sign!r}", source)
         normal = np.zeros(3)
         normal[_AXES[axis.lower()]] = float(sign)
-        return ReferencePlane(name=name, normal=normal, d_m=float(sign) * offset)
+        return _with_extent(ReferencePlane(name=name, normal=normal, d_m=float(sign) * offset),
+                            entry, where, source)
     if has_general:
         for key in ("normal", "d_m"):
             if key not in entry:
@@ -264,8 +365,65 @@ def _parse_plane(entry: Any, i: int, source: str | None) -> ReferencePlane:
             # d_m is a distance in metres along the *unit* normal; a long normal is only a direction.
             logger.warning("%s: normal has length %.6g; normalised, d_m kept as the distance %.6g m",
                            where, norm, d)
-        return ReferencePlane(name=name, normal=n / float(np.linalg.norm(n)), d_m=d)
+        return _with_extent(ReferencePlane(name=name, normal=n / float(np.linalg.norm(n)), d_m=d), entry, where,
+                            source)
     raise ConfigError(f"{where}: missing keys: give axis/offset_m/normal_sign or normal/d_m", source)
+
+
+def _with_extent(plane: ReferencePlane, entry: dict[str, Any], where: str,
+                 source: str | None) -> ReferencePlane:
+    if "extent" not in entry:
+        return plane
+    ext = entry["extent"]
+    where = f"{where}: extent"
+    if not isinstance(ext, dict):
+        raise ConfigError(f"{where} must be a table (center_m/size_m[/axis_u] or polygon_m)", source)
+    rect_keys, poly_keys = {"center_m", "size_m", "axis_u"}, {"polygon_m"}
+    unknown = sorted(set(ext) - rect_keys - poly_keys)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}", source)
+    if bool(rect_keys & set(ext)) == bool(poly_keys & set(ext)):
+        raise ConfigError(f"{where}: give either center_m and size_m (rectangle) or polygon_m", source)
+    n, d = plane.normal, plane.d_m
+    if "polygon_m" in ext:
+        raw = ext["polygon_m"]
+        if not isinstance(raw, list) or len(raw) < 3:
+            raise ConfigError(f"{where}: polygon_m must be a list of at least 3 corners [x, y, z]", source)
+        corners = np.array([_vector3(c, f"{where}: polygon_m corner", source) for c in raw])
+        _check_on_plane(corners, n, d, where, source)
+        origin = corners.mean(axis=0)
+        origin = origin - (origin @ n - d) * n
+        u = _in_plane_axis(n, None)
+        extent = PlaneExtent(origin, u, np.cross(n, u), np.stack(
+            [(corners - origin) @ u, (corners - origin) @ np.cross(n, u)], axis=-1))
+    else:
+        for key in ("center_m", "size_m"):
+            if key not in ext:
+                raise ConfigError(f"{where}: missing key '{key}'", source)
+        center = _vector3(ext["center_m"], f"{where}: center_m", source)
+        _check_on_plane(center[None, :], n, d, where, source)
+        size = ext["size_m"]
+        sizes = (np.array([_number(v, f"{where}: size_m", source) for v in size])
+                 if isinstance(size, list) and len(size) == 2
+                 else np.full(2, _number(size, f"{where}: size_m", source)) if not isinstance(size, list)
+                 else None)
+        if sizes is None or not np.all(sizes > 0):
+            raise ConfigError(f"{where}: size_m must be a positive side or [u, v] sides, got {size!r}", source)
+        axis_u = _vector3(ext["axis_u"], f"{where}: axis_u", source) if "axis_u" in ext else None
+        try:
+            extent = rectangle_extent(n, d, center, sizes, axis_u)
+        except ValueError:
+            raise ConfigError(f"{where}: axis_u is (nearly) along the plane's normal", source) from None
+    if not extent.area_m2 > 1e-8:
+        raise ConfigError(f"{where}: the polygon has no area (corners on a line?)", source)
+    return ReferencePlane(plane.name, plane.normal, plane.d_m, extent)
+
+
+def _check_on_plane(points: FloatArray, n: FloatArray, d: float, where: str, source: str | None) -> None:
+    off = float(np.max(np.abs(points @ n - d)))
+    if off > EXTENT_OFF_PLANE_M:
+        raise ConfigError(f"{where} lies {off:.3f} m off the plane (more than {EXTENT_OFF_PLANE_M} m): "
+                          "centre/corners must be on the plane", source)
 
 
 def _parse_link(entry: Any, i: int, names: set[str], source: str | None) -> ReferenceLink:
