@@ -378,7 +378,8 @@ def test_cli_e57_without_scans(tmp_path, capsys, small_room_run):
     code, _, err = _run(["calibrate", "--cloud", empty, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     assert code == 1
-    assert err == f"kinreg: error: {empty}: holds no scans: nothing to calibrate with\n"
+    # the E57 reader refuses it before the calibration looks at it
+    assert err.startswith(f"kinreg: error: {empty}: ") and "no scans" in err and err.count("\n") == 1
 
 
 def test_cli_trajectory_covering_part_of_the_points_warns_with_the_count(tmp_path, capsys, small_room_run):

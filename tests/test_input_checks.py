@@ -27,14 +27,15 @@ from fuzzing import (
 from kinreg_cli.main import main
 
 from kinreg.config import load_config
-from kinreg.correction import DriftCorrection, write_corrected_las
 from kinreg.errors import CloudError, ConfigError, TrajectoryError
+from kinreg.estimate.correction import DriftCorrection
 from kinreg.io.cloud import TimeFilter, open_cloud
 from kinreg.io.e57 import check_static_scans
 from kinreg.io.las_header import check_las_file
 from kinreg.io.reference_planes import parse_reference_planes
 from kinreg.io.timebase import GPS_UNIX_EPOCH_S, GPS_WEEK_S, diagnose_time_base
 from kinreg.io.trajectory import read_trajectory
+from kinreg.run.corrected_cloud import write_corrected_las
 
 PREFIX = "kinreg: error: "
 

@@ -22,6 +22,7 @@ def write_corrected_las(
     overwrite: bool = False,
     progress: Progress | None = None,
     T_obj_cloud: Pose | None = None,
+    time_offset_s: float = 0.0,
 ) -> int:
     """Stream a LAS/LAZ file, correct every point by its time, write it with the same header,
     point format, order and attributes (only X, Y, Z change). Returns the number of points.
@@ -29,7 +30,9 @@ def write_corrected_las(
     ``T_obj_cloud`` maps the file's coordinates into the frame of ``correction`` (its stations and
     trajectory) before the correction, when the two differ (``[initial_transform]`` of the
     reference planes); the output's header offsets are then mapped with it, so that the integer
-    coordinates keep their range and the scale its resolution.
+    coordinates keep their range and the scale its resolution. ``time_offset_s`` puts the point
+    times into the trajectory's time base (the stored times are kept). Points without a finite
+    time are left out (they have no pose).
     """
     import copy
 
@@ -55,12 +58,19 @@ def write_corrected_las(
             with laspy.open(tmp, mode="w", header=header, do_compress=compress,
                             laz_backend=_laz_backend() if compress else None) as writer:
                 for points in _chunks(reader, chunk_points, source):
+                    t = np.asarray(points.gps_time, dtype=np.float64) + time_offset_s
+                    if not np.isfinite(t).all():
+                        points, t = points[np.isfinite(t)], t[np.isfinite(t)]
                     xyz = np.column_stack([points.x, points.y, points.z]).astype(np.float64)
                     if T_obj_cloud is not None:
                         xyz = T_obj_cloud.apply(xyz)
                         points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
-                    fixed = correction.apply_to_points(xyz, np.asarray(points.gps_time, dtype=np.float64))
-                    points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
+                    fixed = correction.apply_to_points(xyz, t)
+                    try:
+                        points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
+                    except OverflowError:
+                        raise CloudError("a corrected coordinate does not fit the input's scale and offset "
+                                         "(32-bit integers)", source) from None
                     writer.write_points(points)
                     n += len(points)
                     progress.advance(len(points))

@@ -33,6 +33,7 @@ from kinreg.estimate.datum import build_network
 from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
 from kinreg.io.atomic import check_writable_target
+from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
 from kinreg.io.reference_planes import read_reference_planes
 from kinreg.progress import NullProgress, Progress
@@ -94,7 +95,8 @@ def read_and_slice(
 ) -> tuple[Trajectory, int, QuasiStaticSequence]:
     """The input trajectory, the cloud's point count, and the cloud sliced into quasi-static scans."""
     trajectory = read_input_trajectory(trajectory_path, config.input)
-    with open_cloud(cloud_path) as cloud:
+    check_inputs([cloud_path], [trajectory], None, config.input)
+    with open_cloud(cloud_path, times=time_filter(config.input)) as cloud:
         sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
                                       progress=progress)
         return trajectory, cloud.info.n_points, sequence
@@ -233,7 +235,7 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
     folder = prepare_output_folder(out, overwrite, resume, outputs)
     references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
     static = config.static if inputs.static is not None else None
-    trajectories = read_run_trajectories(runs, config.input)
+    trajectories = read_run_trajectories(runs, config.input, inputs.static)
     with contextlib.ExitStack() as stack:
         sliced = [stack.enter_context(sliced_run(folder, r.trajectory, r.cloud, trajectories[k], config, progress, k))
                   for k, r in enumerate(runs)]

@@ -35,6 +35,7 @@ from kinreg.estimate.network import Network, link_pair, station_pairs
 from kinreg.estimate.planes import detect_planes
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.geometry import Pose, pose_sigmas
+from kinreg.io.checks import check_inputs
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
 from kinreg.progress import NullProgress, Progress
@@ -294,12 +295,17 @@ def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
     return read_trajectory(path, fmt, columns)
 
 
-def read_run_trajectories(runs: Sequence[RunInputs], config: InputConfig) -> list[Trajectory]:
-    """Each run's trajectory; a run whose cloud cannot be written corrected is refused first."""
+def read_run_trajectories(runs: Sequence[RunInputs], config: InputConfig,
+                          static: Path | None = None) -> list[Trajectory]:
+    """Each run's trajectory, after the inputs are checked against each other before the long work
+    (:func:`~kinreg.io.checks.check_inputs`: time bases, static scans); a run whose cloud cannot
+    be written corrected is refused first."""
     for r in runs:
         if r.cloud.suffix.lower() not in (".las", ".laz"):
             raise ConfigError("writing the corrected cloud from an E57 input is not supported yet", r.cloud)
-    return [read_input_trajectory(r.trajectory, config) for r in runs]
+    trajectories = [read_input_trajectory(r.trajectory, config) for r in runs]
+    check_inputs([r.cloud for r in runs], trajectories, static, config)
+    return trajectories
 
 
 @dataclass(frozen=True, eq=False)
@@ -351,7 +357,7 @@ def plan_large_outputs(run: RunCache, out: Path, outputs: tuple[str, ...], runs:
     for k, (r, correction) in enumerate(zip(runs, corrections, strict=True)):
         cloud_name = run_output_names(k, len(runs))[0]
         keys[cloud_name] = run.key("output", cloud_name, r.cloud, config.input.chunk_points, T_obj_cloud,
-                                   *dataclass_parts(correction))
+                                   config.input.cloud_time_offset_s, *dataclass_parts(correction))
     n_scans = sum(len(slices) for slices in sliced)
     keys["sequence.e57"] = run.key("output", "sequence.e57", *(slices.key for slices in sliced),
                                    poses[np.arange(n_scans)])
@@ -374,7 +380,8 @@ def write_corrected_runs(out: Path, runs: Sequence[RunInputs], trajectories: Seq
     for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True):
         if cloud_name not in plan.current:
             write_corrected_las(r.cloud, out / cloud_name, correction, config.input.chunk_points,
-                                overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud)
+                                overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud,
+                                time_offset_s=config.input.cloud_time_offset_s)
             run.record_output(cloud_name, plan.keys[cloud_name])
         run.count("corrected cloud", reused=int(cloud_name in plan.current),
                   computed=int(cloud_name not in plan.current))
