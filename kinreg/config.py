@@ -58,6 +58,13 @@ class SlicingConfig:
     window_points: int = 1_000_000
     min_points: int = 2000  # windows with fewer points are reported and skipped
     temp_dir: str = ""  # where per-window points are spilled; "" means the system default
+    # Windows that stay quasi-static (duration mode): after the first adjustment, where the drift
+    # measured over half a window (the smear) exceeds this share of the planes' noise, the run is
+    # sliced again with windows short enough, not below min_window_s (plane detection needs a
+    # full sweep of the head).
+    adaptive: bool = True
+    max_smear_share: float = 0.5
+    min_window_s: float = 2.0
 
 
 @dataclasses.dataclass(frozen=True)

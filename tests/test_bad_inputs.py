@@ -27,6 +27,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from clirunner import run_cli
 from conftest import SyntheticRun, write_synthetic_run
 from e57fixtures import write_raw_e57_scan
 from kinreg_cli.main import main
@@ -45,12 +46,6 @@ ERROR_PREFIX = "kinreg: error: "
 # --------------------------------------------------------------------------- helpers
 
 
-def run_cli(args: list[object], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as info:
-        main([str(a) for a in args])
-    captured = capsys.readouterr()
-    code = info.value.code
-    return (code if isinstance(code, int) else 0), captured.out, captured.err
 
 
 def message_lines(err: str) -> list[str]:

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from kinreg_cli.main import main
+from clirunner import run_cli
 
 from kinreg.calibration import (
     AssignmentConfig,
@@ -35,7 +35,7 @@ from kinreg.io.reference_planes import ReferencePlane, ReferencePlanes, parse_re
 
 
 @pytest.fixture(scope="module")
-def room_run():
+def roomrun_cli():
     """One seeded run of the issue-19 scenario (room in the cloud) and its starting values."""
     cfg, start = room_scenario(2)
     return simulate_calibration(cfg, seed=2), start
@@ -306,15 +306,10 @@ def _start_args(start: SystemCalibration) -> list[str]:
             "--boresight-deg", ",".join(f"{v:.6f}" for v in np.degrees(start.boresight_rad))]
 
 
-def _run(args, capsys):
-    with pytest.raises(SystemExit) as info:
-        main([str(a) for a in args])
-    cap = capsys.readouterr()
-    return info.value.code, cap.out, cap.err
 
 
 @pytest.fixture(scope="module")
-def small_room_run():
+def small_roomrun_cli():
     cfg, start = room_scenario(7, n_profiles=20)
     return simulate_calibration(cfg, seed=7), start
 
@@ -323,7 +318,7 @@ def test_cli_calibrates_amid_the_room(tmp_path, capsys, small_room_run):
     sim, start = small_room_run
     cloud, traj, planes = _write_inputs(tmp_path, sim)
     for gate in ("10", "100"):
-        code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+        code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                              *_start_args(start), "--out", tmp_path / gate, "--gate-mm", gate], capsys)
         assert code == 0, err
         rep = json.loads((tmp_path / gate / "calibration.json").read_text())
@@ -341,12 +336,12 @@ def test_cli_refuses_a_rejected_calibration_unless_asked(tmp_path, capsys, small
     cloud, traj, planes = _write_inputs(tmp_path, sim)
     args = ["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes, *_start_args(start),
             "--out", tmp_path / "out", "--sigma-d-mm", "0.15"]
-    code, _, err = _run(args, capsys)
+    code, _, err = run_cli(args, capsys)
     assert code == 1
     assert err.count("\n") == 1 and "Traceback" not in err
     assert err.startswith(f"kinreg: error: {cloud}: calibration rejected: global test failed")
     assert not (tmp_path / "out").exists()
-    code, _, err = _run([*args, "--accept-rejected"], capsys)
+    code, _, err = run_cli([*args, "--accept-rejected"], capsys)
     assert code == 0
     assert "REJECTED but kept" in err
     rep = json.loads((tmp_path / "out" / "calibration.json").read_text())
@@ -361,7 +356,7 @@ def test_cli_refuses_parallel_planes(tmp_path, capsys):
                    for i, c in enumerate([(0, 1.0, -1.2), (0, -1.0, -1.2), (0, 0.5, 2.0), (0, -0.7, 2.5)]))
     sim = simulate_calibration(SimulationConfig(planes=plates, n_profiles=10), seed=0)
     cloud, traj, planes = _write_inputs(tmp_path, sim)
-    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(sim.truth), "--out", tmp_path / "out"], capsys)
     assert code == 1 and err.count("\n") == 1
     assert err.startswith(f"kinreg: error: {cloud}: the data do not determine the calibration parameter(s)")
@@ -375,7 +370,7 @@ def test_cli_e57_without_scans(tmp_path, capsys, small_room_run):
     empty = tmp_path / "empty.e57"
     with E57SequenceWriter(empty):
         pass
-    code, _, err = _run(["calibrate", "--cloud", empty, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", empty, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     assert code == 1
     # the E57 reader refuses it before the calibration looks at it
@@ -390,7 +385,7 @@ def test_cli_trajectory_covering_part_of_the_points_warns_with_the_count(tmp_pat
     traj_half = Trajectory(sim.trajectory.stamps_s[:half], sim.trajectory.poses[:half])
     cloud, traj, planes = _write_inputs(tmp_path, sim, traj=traj_half)
     n_out = int(np.sum(sim.stamps_s > traj_half.stamps_s[-1]))
-    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     assert f"kinreg: warning: {cloud}: {n_out} of {len(sim.stamps_s)} points lie outside" in err
     assert 0.3 < n_out / len(sim.stamps_s) < 0.7
@@ -402,7 +397,7 @@ def test_cli_trajectory_covering_part_of_the_points_warns_with_the_count(tmp_pat
 def test_cli_trajectory_without_overlap_says_the_time_ranges(tmp_path, capsys, small_room_run):
     sim, start = small_room_run
     cloud, traj, planes = _write_inputs(tmp_path, sim, stamps=sim.stamps_s + 500.0)
-    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     assert code == 1 and err.count("\n") == 1
     assert err.startswith(f"kinreg: error: {traj}: no point time lies in the trajectory's time range")
@@ -417,7 +412,7 @@ def test_cli_plane_indices_out_of_range_name_the_file(tmp_path, capsys, small_ro
     idx = sim.plane_index.copy()
     idx[5] = 8
     np.save(tmp_path / "idx.npy", idx)
-    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out", "--plane-index",
                          tmp_path / "idx.npy"], capsys)
     assert code == 1 and err.count("\n") == 1
@@ -429,7 +424,7 @@ def test_cli_unseen_plane_in_the_file_is_refused(tmp_path, capsys, small_room_ru
     cloud, traj, planes = _write_inputs(tmp_path, sim)
     planes.write_text(planes.read_text() + '[[plane]]\nname = "far_away"\naxis = "x"\noffset_m = -3.0\n'
                       'normal_sign = 1\nextent = { center_m = [-3.0, 0.0, 0.0], size_m = 0.35 }\n')
-    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     assert code == 1 and err.count("\n") == 1
     assert "too few points (< 30) on plane(s) far_away (0)" in err
@@ -444,7 +439,7 @@ def test_cli_far_starting_values_never_exit_0_with_a_wrong_result(tmp_path, caps
     start = SystemCalibration(sim.truth.lever_arm_m + lever_off_m * np.array([0.6, -0.64, 0.48]),
                               sim.truth.boresight_rad + np.radians(angle_off_deg) * np.array([1, -1, 1]))
     cloud, traj, planes = _write_inputs(tmp_path, sim)
-    code, _, err = _run(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
+    code, _, err = run_cli(["calibrate", "--cloud", cloud, "--trajectory", traj, "--planes", planes,
                          *_start_args(start), "--out", tmp_path / "out"], capsys)
     if code == 0:
         rep = json.loads((tmp_path / "out" / "calibration.json").read_text())

@@ -4,18 +4,10 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 import tomllib
-from kinreg_cli.main import main
+from clirunner import run_cli
 
 from kinreg.io.e57 import E57CloudReader
-
-
-def run_cli(args, capsys):
-    with pytest.raises(SystemExit) as info:
-        main([str(a) for a in args])
-    captured = capsys.readouterr()
-    return info.value.code, captured.out, captured.err
 
 
 def test_version(capsys):

@@ -13,6 +13,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from clirunner import run_cli
 from conftest import SyntheticRun, write_synthetic_run
 from fuzzing import (
     REALDATA,
@@ -24,7 +25,6 @@ from fuzzing import (
     small_las,
     write_e57,
 )
-from kinreg_cli.main import main
 
 from kinreg.config import load_config
 from kinreg.errors import CloudError, ConfigError, TrajectoryError
@@ -40,12 +40,6 @@ from kinreg.run.corrected_cloud import write_corrected_las
 PREFIX = "kinreg: error: "
 
 
-def run_cli(args: list[object], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    with pytest.raises(SystemExit) as info:
-        main([str(a) for a in args])
-    captured = capsys.readouterr()
-    code = info.value.code
-    return (code if isinstance(code, int) else 0), captured.out, captured.err
 
 
 def refused(args: list[object], bad: Path, capsys: pytest.CaptureFixture[str], reason: str) -> str:

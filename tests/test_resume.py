@@ -93,7 +93,7 @@ def test_a_changed_block_section_redoes_only_the_block_and_what_follows(run: Pat
     out = run / "block_changed"
     shutil.copytree(run / "reference", out)  # a finished run (copy2 keeps the modification times)
     config = run / "block.toml"
-    config.write_text((run / "kinreg.toml").read_text() + "[block]\nalpha = 0.2\n")  # snooping rejects more
+    config.write_text((run / "kinreg.toml").read_text() + "[block]\nmax_relink_rounds = 0\n")
     summary = process(inputs(run), out, load_config(config), resume=True)
     assert summary.stage_cache == {
         "slice": {"reused": 1, "computed": 1},  # the index is re-used; the points for sequence.e57 are read again

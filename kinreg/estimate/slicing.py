@@ -4,11 +4,15 @@ Streaming the points into the windows is :mod:`kinreg.run.spill`."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
 import numpy as np
 
 from kinreg.config import SlicingConfig, WindowMode
+from kinreg.estimate.drift import DriftRates
 from kinreg.geometry import FloatArray
-from kinreg.types import ScanWindow, SkippedWindow, Trajectory
+from kinreg.types import Plane, ScanKind, ScanWindow, SkippedWindow, Station, Trajectory
 
 # In POINTS mode the cloud is first spilled into bins of this length; windows are then formed
 # from consecutive bins, so the point counts need no extra pass over the cloud.
@@ -81,3 +85,39 @@ def choose_windows(trajectory: Trajectory, edges: FloatArray, counts: np.ndarray
                                   trajectory.poses[k]))
         kept_ranges.append((a, b))
     return windows, kept_ranges, skipped, len(ranges)
+
+
+def window_smear_m(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], rates: DriftRates) -> FloatArray:
+    """Per station: how far the measured drift moves a plane over half its window [m], the
+    position rate and the rotation rate times the median distance of the station's planes
+    (``nan`` for static stations and stations without planes). Drift inside a window smears the
+    planes of a quasi-static scan: the scan is quasi-static only while this stays below the
+    planes' noise (METHOD.md section 2, step 2)."""
+    pos = float(np.linalg.norm(rates.pos_m_per_s))
+    rot = float(np.linalg.norm(rates.rot_rad_per_s))
+    smear = np.full(len(stations), np.nan)
+    for k, (s, found) in enumerate(zip(stations, planes, strict=True)):
+        if s.kind is not ScanKind.QUASI_STATIC or not found:
+            continue
+        half = 0.5 * (s.t_end_s - s.t_start_s)
+        reach = float(np.median([np.linalg.norm(p.centroid_xyz) for p in found]))
+        smear[k] = half * float(np.hypot(pos, rot * reach))
+    return smear
+
+
+def shorter_window_s(window_s: float, smear_m: FloatArray, planes: Sequence[tuple[Plane, ...]],
+                     config: SlicingConfig) -> float | None:
+    """A window length [s] that keeps the median smear (:func:`window_smear_m`) within
+    ``config.max_smear_share`` of the planes' median noise, in half seconds, not below
+    ``config.min_window_s``; ``None`` where the current windows are short enough (or cannot be
+    made shorter, or the windows are not cut by duration)."""
+    finite = smear_m[np.isfinite(smear_m)]
+    noise = [p.rms_m for found in planes for p in found]
+    if not config.adaptive or config.mode is not WindowMode.DURATION or not len(finite) or not noise:
+        return None
+    allowed = config.max_smear_share * float(np.median(noise))
+    smear = float(np.median(finite))
+    if smear <= allowed:
+        return None
+    shorter = max(config.min_window_s, math.floor(2.0 * window_s * allowed / smear) / 2.0)
+    return shorter if shorter < 0.8 * window_s else None

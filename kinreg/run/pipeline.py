@@ -32,10 +32,11 @@ from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.datum import build_network
 from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
+from kinreg.estimate.slicing import shorter_window_s, window_smear_m
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
-from kinreg.io.reference_planes import read_reference_planes
+from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
 from kinreg.progress import NullProgress, Progress
 from kinreg.report.html import render_html
 from kinreg.report.json import build_failure_report, build_report, write_report_json
@@ -49,6 +50,7 @@ from kinreg.report.tables import (
 )
 from kinreg.run.executor import ExecutorContext, make_executor
 from kinreg.run.output_folder import (
+    CachedSlices,
     RunCache,
     open_run_cache,
     remove_outputs,
@@ -65,6 +67,7 @@ from kinreg.run.runs import (
 from kinreg.run.spill import QuasiStaticSequence, slice_quasi_static
 from kinreg.run.stages import (
     AdjustedNetwork,
+    KinematicStations,
     adjust_with_measured_drift,
     counted,
     detect_all_planes,
@@ -82,6 +85,7 @@ from kinreg.types import (
     BlockResult,
     Plane,
     SlicingSummary,
+    Station,
     Trajectory,
 )
 
@@ -206,8 +210,9 @@ class StageClock:
         self._last = time.perf_counter()
 
     def lap(self, stage: str) -> None:
+        """The time since the last lap, added to ``stage`` (a stage done twice counts twice)."""
         now = time.perf_counter()
-        self.timings_s[stage] = now - self._last
+        self.timings_s[stage] = self.timings_s.get(stage, 0.0) + now - self._last
         self._last = now
 
 
@@ -237,22 +242,11 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
     static = config.static if inputs.static is not None else None
     trajectories = read_run_trajectories(runs, config.input, inputs.static)
     with contextlib.ExitStack() as stack:
-        sliced = [stack.enter_context(sliced_run(folder, r.trajectory, r.cloud, trajectories[k], config, progress, k))
-                  for k, r in enumerate(runs)]
         executor = stack.enter_context(make_executor(workers, scheduler))
-        clock.lap("slice")
-        kinematic = detect_run_planes(sliced, trajectories, references, config, progress, executor, folder)
-        static_stations, static_planes = detect_static_planes(inputs.static, len(kinematic.stations), config.planes,
-                                                              progress, folder)  # none without --static
-        stations, planes = kinematic.stations + static_stations, kinematic.planes + static_planes
-        clock.lap("planes")
-        links = link_stations_cached(stations, planes, config, static, progress, executor, folder)
-        clock.lap("link")
-        network = build_network(stations, planes, links, references, static, config)
-        adjusted = adjust_or_fail(network, planes, static, config, progress, executor, out, outputs,
-                                  inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference))
-        folder.count("block", computed=1)
-        clock.lap("block")
+        est, config = estimate_quasi_static(stack, folder, inputs, trajectories, references, config, progress,
+                                            executor, clock, out, outputs)
+        sliced, kinematic, stations, planes, adjusted = (est.sliced, est.kinematic, est.stations, est.planes,
+                                                         est.adjusted)
         corrections = [run_correction(stations, adjusted.result, k, kinematic.trajectories[k], kinematic.jumps[k])
                        for k in range(len(runs))]
         plan = plan_large_outputs(folder, out, outputs, runs, sliced, corrections, adjusted.result.poses, config,
@@ -266,7 +260,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
         inputs=inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference),
         config_toml=format_toml(config), network=adjusted.network, planes=planes,
         n_candidate_pairs=len(station_pairs(stations, config.matching, static)), result=adjusted.result,
-        drift_rates=adjusted.rates, slicing=slicing_report([slices.summary for slices in sliced]),
+        drift_rates=adjusted.rates, slicing=slicing_report([slices.summary for slices in sliced], config.slicing,
+                                                           est.smear_m, est.first_window_s),
         corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
         alpha=config.block.alpha, timings_s=clock.timings_s,
         trajectory_plot=trajectory_plot(kinematic.trajectories, corrected))
@@ -275,6 +270,69 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
     write_report_json(out / "report.json", report)  # last: it marks a finished run
     folder.finish()
     return ProcessSummary.from_report(out, report)
+
+
+@dataclass(frozen=True, eq=False)
+class EstimatedNetwork:
+    """Slice, planes, links and the adjusted network of every run, for one window length."""
+
+    sliced: list[CachedSlices]
+    kinematic: KinematicStations
+    stations: list[Station]
+    planes: list[tuple[Plane, ...]]
+    adjusted: AdjustedNetwork
+    smear_m: np.ndarray  # per station, by the measured drift over half its window
+    first_window_s: float | None = None  # the windows of the first slicing, where they were too long
+
+
+def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
+                          trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
+                          progress: Progress, executor: ExecutorContext, clock: StageClock, out: Path,
+                          outputs: tuple[str, ...]) -> tuple[EstimatedNetwork, KinregConfig]:
+    """:func:`estimate_network`; where the measured drift smears the planes of its windows
+    (:func:`~kinreg.estimate.slicing.shorter_window_s`), once more with shorter windows. Returns
+    the result and the configuration it was made with."""
+    est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock, out,
+                           outputs)
+    window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing)
+    if window is None:
+        return est, config
+    log.warning("the drift smears the planes by %.1f mm over half a window (median): sliced again with %.1f s "
+                "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), window, config.slicing.window_s)
+    again = estimate_network(stack, folder, inputs, trajectories, references, with_window(config, window), progress,
+                             executor, clock, out, outputs)
+    return dataclasses.replace(again, first_window_s=config.slicing.window_s), with_window(config, window)
+
+
+def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
+                     trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
+                     progress: Progress, executor: ExecutorContext, clock: StageClock, out: Path,
+                     outputs: tuple[str, ...]) -> EstimatedNetwork:
+    """Slice every run (its spill kept open on ``stack``), detect planes (and the static scans'),
+    link and adjust: the stages of :func:`process` before the outputs, each through the stage cache."""
+    runs, static = inputs.runs, config.static if inputs.static is not None else None
+    sliced = [stack.enter_context(sliced_run(folder, r.trajectory, r.cloud, trajectories[k], config, progress, k))
+              for k, r in enumerate(runs)]
+    clock.lap("slice")
+    kinematic = detect_run_planes(sliced, trajectories, references, config, progress, executor, folder)
+    static_stations, static_planes = detect_static_planes(inputs.static, len(kinematic.stations), config.planes,
+                                                          progress, folder)  # none without --static
+    stations, planes = kinematic.stations + static_stations, kinematic.planes + static_planes
+    clock.lap("planes")
+    links = link_stations_cached(stations, planes, config, static, progress, executor, folder)
+    clock.lap("link")
+    network = build_network(stations, planes, links, references, static, config)
+    adjusted = adjust_or_fail(network, planes, static, config, progress, executor, out, outputs,
+                              inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference))
+    folder.count("block", computed=1)
+    clock.lap("block")
+    return EstimatedNetwork(sliced, kinematic, stations, planes, adjusted,
+                            window_smear_m(stations, planes, adjusted.rates))
+
+
+def with_window(config: KinregConfig, window_s: float) -> KinregConfig:
+    """``config`` with quasi-static windows of ``window_s`` seconds."""
+    return dataclasses.replace(config, slicing=dataclasses.replace(config.slicing, window_s=window_s))
 
 
 def adjust_or_fail(network: Network, planes: list[tuple[Plane, ...]], static: StaticConfig | None,

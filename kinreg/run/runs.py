@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from kinreg.config import SlicingConfig, WindowMode
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose
 from kinreg.types import Plane, Scan, ScanKind, SlicingSummary, Trajectory
@@ -152,11 +153,24 @@ def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
     }
 
 
-def slicing_report(summaries: Sequence[SlicingSummary]) -> dict[str, Any]:
+def slicing_report(summaries: Sequence[SlicingSummary], config: SlicingConfig | None = None,
+                   smear_m: np.ndarray | None = None, first_window_s: float | None = None) -> dict[str, Any]:
     """``report.json`` ``slicing``: totals over the runs; with several runs each skipped window
-    names its run (1-based)."""
+    names its run (1-based); the window length used (``first_window_s``: the one the run was
+    sliced with first, where the drift made it slice again) and the smear of each station's
+    window by the measured drift (:func:`~kinreg.estimate.slicing.window_smear_m`)."""
     several = len(summaries) > 1
+    smear = np.zeros(0) if smear_m is None else np.asarray(smear_m) * 1000.0
+    finite = smear[np.isfinite(smear)]
+    windows = {} if config is None else {
+        "window_s": config.window_s if config.mode is WindowMode.DURATION else None,
+        "window_s_first": first_window_s,
+        "smear_mm": {"median": float(np.median(finite)) if len(finite) else None,
+                     "max": float(finite.max()) if len(finite) else None,
+                     "per_station": [None if not np.isfinite(v) else float(v) for v in smear]},
+    }
     return {
+        **windows,
         "n_scans": sum(s.n_scans for s in summaries),
         "n_points_in_scans": sum(s.n_points_in_scans for s in summaries),
         "n_points_outside_trajectory": sum(s.n_points_outside_trajectory for s in summaries),
