@@ -1,0 +1,107 @@
+"""The report page's view of the point cloud: sections before/after and the plane-thickness map.
+
+The PNGs written by :class:`kinreg.report.cloud_views.CloudViews` are embedded as ``data:`` URIs,
+so the page stays one self-contained file; ``base_dir`` is the folder their paths in
+``report["cloud"]`` are relative to (the output folder). Without it, or without the files, the
+page names the files instead of showing them.
+"""
+
+from __future__ import annotations
+
+import base64
+import struct
+from pathlib import Path
+from typing import Any
+
+from kinreg.report.text import DASH, _count, _esc, _fmt, _get, _tag
+
+
+def _png_size(data: bytes) -> tuple[int, int] | None:
+    if data[:8] != b"\x89PNG\r\n\x1a\n" or len(data) < 24:
+        return None
+    return struct.unpack(">II", data[16:24])
+
+
+def _image(path: Any, alt: str, base_dir: Path | None) -> str:
+    """An ``<img>`` with the PNG inline, or a note naming the file when it cannot be read."""
+    if not isinstance(path, str) or not path:
+        return ""
+    data = b""
+    if base_dir is not None:
+        try:
+            data = (Path(base_dir) / path).read_bytes()
+        except OSError:
+            data = b""
+    size = _png_size(data)
+    if size is None:
+        return _tag("p", _esc(f"Image {path}: in the output folder (not embedded)."), class_="sub")
+    uri = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+    return f'<img class="cloud" src="{uri}" alt="{_esc(alt)}" width="{size[0]}" height="{size[1]}">'
+
+
+def _pair(before: str, after: str, caption: str) -> str:
+    return _tag("figure", _tag("div", before + after, class_="pair") + _tag("figcaption", _esc(caption)))
+
+
+def thickness_figure(report: dict[str, Any]) -> tuple[str, str, str]:
+    """The key-figures row of the plane thickness: label, ratio, medians."""
+    th = _get(report, "cloud", "thickness", default={})
+    ratio = th.get("median_ratio_after_before")
+    return ("plane thickness after/before", f"median {_fmt(ratio, 2)}",
+            f"{_fmt(th.get('median_before_mm'), 1)} \u2192 {_fmt(th.get('median_after_mm'), 1, 'mm')}")
+
+
+def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
+    """The page section of ``report["cloud"]``; empty when the run has none."""
+    cloud = _get(report, "cloud", default=None)
+    if not isinstance(cloud, dict):
+        return ""
+    times = cloud.get("time_range_s") or [None, None]
+    duration = (times[1] - times[0]) if all(isinstance(t, int | float) for t in times[:2]) else None
+    parts = [_tag("h2", "The cloud: sections before and after, plane thickness")]
+    legend = ("Points coloured by time, from dark blue (start) through green to yellow (end, "
+              f"{_fmt(duration, 0, 's')}): a wall that drifted between two passes shows twice, in two colours. "
+              "Scale bar in metres; N: +y of the cloud's frame (grid north in a projected CRS).")
+    for k, section in enumerate(s for s in cloud.get("sections") or [] if isinstance(s, dict)):
+        z, band = _fmt(section.get("z_m"), 2, "m"), _fmt(section.get("band_m"), 2, "m")
+        images = section.get("images") or {}
+        before = _image(images.get("before"), f"Horizontal section {k + 1} at z = {z} (band {band}) before the "
+                        "drift correction, points coloured by time", base_dir)
+        after = _image(images.get("after"), f"Horizontal section {k + 1} at z = {z} (band {band}) after the "
+                       "drift correction, points coloured by time", base_dir)
+        caption = (f"Section {k + 1}: z = {z} \u00b1 {_fmt((section.get('band_m') or 0) / 2, 2, 'm')} "
+                   f"({cloud.get('heights', DASH)} height), left before, right after the correction; "
+                   f"{_count(section.get('n_points_before'))} / {_count(section.get('n_points_after'))} points, "
+                   f"pixel {_fmt((section.get('pixel_m') or 0) * 100, 1, 'cm')}. " + legend)
+        parts.append(_pair(before, after, caption))
+    th = cloud.get("thickness")
+    if isinstance(th, dict):
+        rows = [
+            ("median ratio after/before (cells planar in both)", _fmt(th.get("median_ratio_after_before"), 3)),
+            ("median thickness before / after", f"{_fmt(th.get('median_before_mm'), 2)} / "
+                                                f"{_fmt(th.get('median_after_mm'), 2, 'mm')}"),
+            ("share of cells thinner after", _fmt(100 * th["share_thinner_after"], 0, "%")
+             if isinstance(th.get("share_thinner_after"), int | float) else DASH),
+            ("planar cells before / after / both", f"{_count(th.get('n_planar_before'))} / "
+                                                   f"{_count(th.get('n_planar_after'))} / "
+                                                   f"{_count(th.get('n_planar_both'))}"),
+            ("cell", _fmt(th.get("cell_m"), 2, "m")),
+        ]
+        body = "".join(_tag("tr", _tag("td", _esc(a)) + _tag("td", _esc(b), class_="num")) for a, b in rows)
+        parts.append(_tag("div", "<h3>Plane thickness</h3>" + _tag("table", body)
+                          + _tag("p", "Per cube of the grid: the root of the smallest eigenvalue of its points' "
+                                 "covariance where they form a plane. It needs no ground truth: a wall seen twice "
+                                 "with drift between is thick, a corrected one as thin as the scanner's noise.",
+                                 class_="sub"), class_="card"))
+        images = th.get("images") or {}
+        if images:
+            vmax = _fmt(th.get("map_max_mm"), 0, "mm")
+            parts.append(_pair(
+                _image(images.get("before"), "Map of the plane thickness per grid column before the correction",
+                       base_dir),
+                _image(images.get("after"), "Map of the plane thickness per grid column after the correction",
+                       base_dir),
+                f"Plane thickness per column of {_fmt(th.get('cell_m'), 1, 'm')} cells (median over its planar "
+                f"cells), left before, right after; light yellow 0 to dark red {vmax} and more; grey: no planar "
+                "cell."))
+    return "\n".join(parts)
