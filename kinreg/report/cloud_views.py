@@ -32,8 +32,17 @@ from kinreg.config import ReportConfig
 from kinreg.geometry import FloatArray, Pose
 from kinreg.io.atomic import atomic_path
 from kinreg.report.crs import describe_crs
-from kinreg.report.raster import WHITE, Image, colour_map, draw_colour_bar, draw_label, draw_north_arrow, \
-    draw_scale_bar, encode_png
+from kinreg.report.raster import (
+    WHITE,
+    Image,
+    colour_map,
+    draw_colour_bar,
+    draw_label,
+    draw_north_arrow,
+    draw_scale_bar,
+    encode_png,
+    font_scale,
+)
 from kinreg.report.sections import Grid, SectionRaster, choose_heights
 from kinreg.report.thickness import CellMoments, column_map, compare
 
@@ -148,12 +157,13 @@ class CloudViews:
 def _thickness_image(grid: FloatArray, cell_m: float, vmax_m: float, which: str) -> Image:
     """The column map as an image: each cell a square of pixels, about 800 px wide."""
     h, w = grid.shape
-    px = int(max(4, min(40, 800 // max(w, 1))))
+    px = int(max(2, min(40, 800 // max(w, 1))))
     big = np.kron(np.nan_to_num(grid, nan=-1.0), np.ones((px, px)))
-    pad = 12 * px if px >= 8 else 60  # room for the scale bar and colour bar below, the title above
-    image = np.empty((big.shape[0] + 2 * pad, big.shape[1] + 2 * pad // 3 + 80, 3), dtype=np.uint8)
+    scale = font_scale(np.empty((big.shape[0], max(big.shape[1], 400), 0), dtype=np.uint8))
+    top, bottom, side = 24 * scale, 18 * scale, 4 * scale  # title and north arrow above, bars below
+    image = np.empty((big.shape[0] + top + bottom, max(big.shape[1] + 2 * side, 400), 3), dtype=np.uint8)
     image[:] = WHITE
-    view = image[pad:pad + big.shape[0], pad // 3:pad // 3 + big.shape[1]]
+    view = image[top:top + big.shape[0], side:side + big.shape[1]]
     full = big >= 0
     view[~full] = (235, 235, 235)
     view[full] = colour_map(big[full] / vmax_m, heat=True)
