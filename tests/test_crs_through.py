@@ -123,9 +123,9 @@ def _cut_sample(folder: Path, shift: np.ndarray, wkt: str, seconds: float = 75.0
         header.global_encoding.wkt = True
         header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(wkt))
     out = laspy.LasData(header)
-    out.points = las.points[keep].copy()
-    out.change_scaling(offsets=header.offsets)
-    out.x, out.y, out.z = (np.asarray(las[c])[keep] + s for c, s in zip("xyz", shift, strict=True))
+    # The same integer coordinates with the offsets moved: every point moves by exactly ``shift``.
+    out.points = laspy.ScaleAwarePointRecord(las.points.array[keep].copy(), header.point_format, header.scales,
+                                             header.offsets)
     cloud = folder / "cloud.laz"
     out.write(str(cloud))
     rows = []
