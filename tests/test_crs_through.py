@@ -13,9 +13,8 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from pye57 import libe57
-
 from laspy.vlrs.vlrlist import VLRList
+from pye57 import libe57
 
 from kinreg.geometry import Pose
 from kinreg.io.e57 import write_e57_sequence

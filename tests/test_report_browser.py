@@ -68,8 +68,8 @@ def probe(tmp_path: Path, page: str, width: int) -> dict:
     window is at least 500 px wide, so narrower viewports are an iframe of that width."""
     probed = page.replace("</body>", PROBE + "</body>")
     if width < 500:
-        probed = ('<!doctype html><html><body style="margin:0"><iframe style="width:%dpx;height:900px;border:0" '
-                  'srcdoc="%s"></iframe></body></html>' % (width, html.escape(probed, quote=True)))
+        probed = (f'<!doctype html><html><body style="margin:0"><iframe style="width:{width}px;height:900px;'
+                  f'border:0" srcdoc="{html.escape(probed, quote=True)}"></iframe></body></html>')
     target = tmp_path / f"probe-{width}.html"
     target.write_text(probed, encoding="utf-8")
     dom = chromium(tmp_path, "--dump-dom", "--virtual-time-budget=5000", f"--window-size={max(width, 500)},900",

@@ -45,7 +45,7 @@ def decode_png(data: bytes) -> np.ndarray:
     return raw[:, 1:].reshape(h, w, 3)
 
 
-def room(n: int, rng: np.random.Generator, noise_m: float = 0.003, origin=np.zeros(3)) -> np.ndarray:
+def room(n: int, rng: np.random.Generator, noise_m: float = 0.003, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Points of a 10 m x 6 m x 3 m box room: floor, ceiling and four walls, with range noise."""
     faces = rng.integers(0, 6, n)
     u, v = rng.random(n), rng.random(n)
@@ -55,10 +55,10 @@ def room(n: int, rng: np.random.Generator, noise_m: float = 0.003, origin=np.zer
     xyz[faces == 4, 1], xyz[faces == 5, 1] = 0.0, 6.0
     normal_axis = np.array([2, 2, 0, 0, 1, 1])[faces]
     xyz[np.arange(n), normal_axis] += rng.normal(0.0, noise_m, n)
-    return xyz + OFF + origin
+    return xyz + OFF + np.asarray(origin)
 
 
-def drifted_pass(rng: np.random.Generator, shift_m: float, origin=np.zeros(3)):
+def drifted_pass(rng: np.random.Generator, shift_m: float, origin=(0.0, 0.0, 0.0)):
     """Two passes through the room, 100 s apart: the second one drifted by ``shift_m`` in x and y
     and by half of it in z (before), both where they belong (after). Returns before, after, times."""
     first, second = room(60_000, rng, origin=origin), room(60_000, rng, origin=origin)

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from kinreg.config import ReportConfig
-from kinreg.geometry import FloatArray, Pose
+from kinreg.geometry import FloatArray
 from kinreg.io.atomic import atomic_path
+from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.crs import describe_crs
 from kinreg.report.raster import (
     WHITE,
@@ -45,6 +46,7 @@ from kinreg.report.raster import (
 )
 from kinreg.report.sections import Grid, SectionRaster, choose_heights
 from kinreg.report.thickness import CellMoments, column_map, compare
+from kinreg.types import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +158,7 @@ class CloudViews:
 
 def _thickness_image(grid: FloatArray, cell_m: float, vmax_m: float, which: str) -> Image:
     """The column map as an image: each cell a square of pixels, about 800 px wide."""
-    h, w = grid.shape
+    w = grid.shape[1]
     px = int(max(2, min(40, 800 // max(w, 1))))
     big = np.kron(np.nan_to_num(grid, nan=-1.0), np.ones((px, px)))
     scale = font_scale(np.empty((big.shape[0], max(big.shape[1], 400), 0), dtype=np.uint8))
@@ -201,13 +203,16 @@ def _clean(value: Any) -> Any:
     return value
 
 
-def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], stamps_s: Sequence[FloatArray],
-                         T_obj_cloud: Pose | None = None) -> CloudViews:
-    """A :class:`CloudViews` over the header bounds of every cloud (mapped by ``T_obj_cloud``
-    when the clouds' frame is not the correction's) and the time range of every trajectory; the
-    CRS from the first cloud."""
+def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajectories: Sequence[Trajectory],
+                         references: ReferencePlanes | None = None) -> CloudViews:
+    """A :class:`CloudViews` over the header bounds of every cloud (mapped into the trajectories'
+    frame by the references' ``[initial_transform]``, as corrected.laz is) and the time range of
+    every trajectory; the CRS from the first cloud."""
     from kinreg.io.cloud import open_cloud
     from kinreg.io.las import read_las_crs
+
+    T_obj_cloud = None if references is None else references.T_ref_traj
+    stamps_s = [t.stamps_s for t in trajectories]
 
     lows, highs = [], []
     for path in clouds:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +28,7 @@ _ANCHORS = np.array([
 _HEAT = np.array([(255, 255, 204), (254, 217, 118), (253, 141, 60), (227, 26, 28), (128, 0, 38)], dtype=np.float64)
 
 
-def colour_map(values: NDArray[np.float64], heat: bool = False) -> Image:
+def colour_map(values: NDArray[np.floating[Any]], heat: bool = False) -> Image:
     """RGB (n, 3) uint8 for ``values`` in [0, 1] (clipped; NaN as 0).
 
     >>> colour_map(np.array([0.0, 1.0])).tolist()
@@ -130,7 +131,7 @@ def nice_length(target: float) -> float:
 
 def font_scale(image: Image) -> int:
     """Glyph scale so that labels stay readable when the image is shown about 600 px wide."""
-    return int(max(2, min(6, round(max(image.shape[:2]) / 330))))
+    return max(2, min(6, round(max(image.shape[:2]) / 330)))
 
 
 def draw_scale_bar(image: Image, pixel_m: float) -> None:
@@ -138,7 +139,7 @@ def draw_scale_bar(image: Image, pixel_m: float) -> None:
     h, w = image.shape[:2]
     scale = font_scale(image)
     length_m = nice_length(0.2 * w * pixel_m)
-    length_px = max(int(round(length_m / pixel_m)), 1)
+    length_px = max(round(length_m / pixel_m), 1)
     thick = 3 * scale
     x0, y1 = 4 * scale, h - 4 * scale
     fill_rect(image, x0 - scale, y1 - thick - 11 * scale, x0 + length_px + scale, y1 + scale, WHITE)
@@ -155,9 +156,8 @@ def draw_north_arrow(image: Image) -> None:
     size = 14 * scale
     cx, top = w - 6 * scale - size // 2, 4 * scale
     fill_rect(image, cx - size // 2 - scale, top - scale, cx + size // 2 + scale, top + size + 10 * scale, WHITE)
-    rows = np.arange(size)
-    half = (rows * (size // 2) // max(size - 1, 1))
-    for r, hw in zip(rows, half, strict=True):
+    for r in range(size):  # a filled triangle, one pixel row at a time
+        hw = r * (size // 2) // max(size - 1, 1)
         fill_rect(image, cx - hw, top + r, cx + hw + 1, top + r + 1, BLACK)
     draw_text(image, "N", cx - (5 * scale) // 2, top + size + 2 * scale, scale, box=False)
 

@@ -10,6 +10,7 @@ Memory is the rasters only (8 bytes per pixel), whatever the number of points.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,7 +67,7 @@ class SectionRaster:
         self.time_sum = np.zeros(grid.width * grid.height, dtype=np.float32)
         self.n_points = 0
 
-    def add(self, xy: FloatArray, time01: FloatArray) -> None:
+    def add(self, xy: FloatArray, time01: NDArray[np.floating[Any]]) -> None:
         index, inside = self.grid.flat_index(xy)
         index, time01 = index[inside], time01[inside]
         if len(index) == 0:

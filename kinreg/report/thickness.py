@@ -118,8 +118,9 @@ class CellMoments:
         mean = self.sums[:, 1:4] / safe[:, None]
         xx, xy, xz, yy, yz, zz = (self.sums[:, k] / safe for k in range(4, 10))
         cov = np.empty((len(n), 3, 3))
-        cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2] = xx - mean[:, 0] ** 2, xy - mean[:, 0] * mean[:, 1], xz - mean[:, 0] * mean[:, 2]
-        cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2] = yy - mean[:, 1] ** 2, yz - mean[:, 1] * mean[:, 2], zz - mean[:, 2] ** 2
+        mx, my, mz = mean[:, 0], mean[:, 1], mean[:, 2]
+        cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2] = xx - mx * mx, xy - mx * my, xz - mx * mz
+        cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2] = yy - my * my, yz - my * mz, zz - mz * mz
         cov[:, 1, 0], cov[:, 2, 0], cov[:, 2, 1] = cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 2]
         eig = np.clip(np.linalg.eigvalsh(cov), 0.0, None) if len(n) else np.zeros((0, 3))
         planar = (n >= min_points) & (eig[:, 1] >= MIN_SPREAD_M**2) & (eig[:, 0] <= PLANAR_RATIO * eig[:, 1])
