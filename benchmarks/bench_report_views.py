@@ -36,8 +36,10 @@ def run_process(trajectory: str, cloud: str, out: Path, views: bool) -> dict:
     config.write_text(f"[report]\ncloud_views = {'true' if views else 'false'}\n")
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'cli'}"}
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "kinreg_cli", "process", "-t", trajectory, "-c", cloud, "--out", str(out),
-                    "--config", str(config), "--overwrite"], check=True, env=env, capture_output=True)
+    done = subprocess.run([sys.executable, "-m", "kinreg_cli", "process", "-t", trajectory, "-c", cloud, "--out",
+                           str(out), "--config", str(config), "--overwrite"], env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"kinreg process failed:\n{done.stderr[-3000:]}")
     wall = time.perf_counter() - start
     report = json.loads((out / "report.json").read_text())
     return {"wall_s": wall, "timings_s": report["timings_s"], "cloud": report.get("cloud"),

@@ -87,7 +87,7 @@ def test_images_decode_and_nothing_is_clipped(report_page, tmp_path, width):
     _, page = report_page
     seen = probe(tmp_path, page, width)
     images = seen["images"]
-    assert len(images) == 4  # section before/after, thickness before/after
+    assert len(images) == 10  # section before/after, 3 insets before/after, thickness before/after
     for image in images:
         assert image["done"] and image["w"] > 0 and image["h"] > 0
         assert len(image["alt"]) > 20

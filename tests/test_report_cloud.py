@@ -205,7 +205,7 @@ def test_html_embeds_the_images_with_alt_text(drifted):
     _, result, out = drifted
     page = render_html({"schema_version": 1, **result}, base_dir=out)
     images = re.findall(r"<img [^>]*>", page)
-    assert len(images) == 4  # section before/after, thickness before/after
+    assert len(images) == 10  # section before/after, 3 insets before/after, thickness before/after
     for tag in images:
         assert re.search(r'alt="[^"]{20,}"', tag)
         uri = re.search(r'src="data:image/png;base64,([^"]+)"', tag)
@@ -219,3 +219,26 @@ def test_html_embeds_the_images_with_alt_text(drifted):
     # Without the folder the page names the files and stays valid.
     assert "figures/section_1_before.png" in render_html(result)
     assert "<img" not in render_html(result)
+
+
+def test_drawing_is_clipped_to_the_image():
+    from kinreg.report.raster import fill_rect
+
+    image = np.zeros((10, 10, 3), dtype=np.uint8)
+    fill_rect(image, -8, -8, -5, -5, (255, 255, 255))  # wholly outside: nothing
+    fill_rect(image, 8, 8, 20, 20, (255, 255, 255))  # partly outside: the part inside
+    assert image.sum() == 4 * 3 * 255
+
+
+def test_insets_where_the_correction_is_largest(drifted):
+    _, result, out = drifted
+    insets = result["cloud"]["sections"][0]["insets"]
+    assert len(insets) == 3
+    # Half the points moved by 6 cm x sqrt(2) horizontally, half not at all: about 42 mm on average.
+    assert all(20.0 < i["correction_mm"] < 90.0 for i in insets)
+    assert [i["correction_mm"] for i in insets] == sorted((i["correction_mm"] for i in insets), reverse=True)
+    for a in range(3):
+        for b in range(a):
+            assert np.hypot(insets[a]["x_m"] - insets[b]["x_m"], insets[a]["y_m"] - insets[b]["y_m"]) >= 4.0
+        image = decode_png((out / insets[a]["images"]["before"]).read_bytes())
+        assert 500 <= max(image.shape[:2]) <= 800

@@ -74,6 +74,20 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                    f"{_count(section.get('n_points_before'))} / {_count(section.get('n_points_after'))} points, "
                    f"pixel {_fmt((section.get('pixel_m') or 0) * 100, 1, 'cm')}. " + legend)
         parts.append(_pair(before, after, caption))
+        insets = [i for i in section.get("insets") or [] if isinstance(i, dict)]
+        figures = []
+        for n, inset in enumerate(insets, 1):
+            where = f"x = {_fmt(inset.get('x_m'), 1, 'm')}, y = {_fmt(inset.get('y_m'), 1, 'm')}"
+            pictures = inset.get("images") or {}
+            figures.append(_pair(
+                _image(pictures.get("before"), f"Inset {n} of section {k + 1} at {where}, before the correction",
+                       base_dir),
+                _image(pictures.get("after"), f"Inset {n} of section {k + 1} at {where}, after the correction",
+                       base_dir),
+                f"Inset {n} (red box {n}): {_fmt(inset.get('size_m'), 0, 'm')} square at {where}; mean horizontal "
+                f"correction of its points {_fmt(inset.get('correction_mm'), 1, 'mm')}. Left before, right after."))
+        if figures:
+            parts.append(_tag("div", "".join(figures), class_="insets"))
     th = cloud.get("thickness")
     if isinstance(th, dict):
         rows = [

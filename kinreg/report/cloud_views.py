@@ -44,7 +44,17 @@ from kinreg.report.raster import (
     encode_png,
     font_scale,
 )
-from kinreg.report.sections import Grid, SectionRaster, choose_heights
+from kinreg.report.sections import (
+    CorrectionMap,
+    Grid,
+    SectionRaster,
+    choose_heights,
+    crop,
+    draw_boxes,
+    enlarge,
+    render_time_image,
+    title_strip_px,
+)
 from kinreg.report.thickness import CellMoments, column_map, compare
 from kinreg.types import Trajectory
 
@@ -52,6 +62,7 @@ log = logging.getLogger(__name__)
 
 FIGURES_DIR = "figures"
 SUMMARY_NAME = "cloud.json"
+INSETS, INSET_M = 3, 3.0  # zoomed windows of the first section where the correction is largest, their size
 MIN_CELL_POINTS = 50  # points of a planar cell (1 m cell at 5 mm noise: the thickness to ~10 %)
 
 
@@ -71,6 +82,7 @@ class CloudViews:
         self.heights: list[float] | None = list(config.section_heights_m) or None
         self.automatic = not config.section_heights_m
         self.rasters: dict[tuple[float, str], SectionRaster] = {}
+        self.corrections = CorrectionMap(self.grid)  # of the first section's points
         origin = np.asarray(bounds_min, dtype=np.float64) - 1.0  # corrected points may leave the input's box
         extent = np.asarray(bounds_max, dtype=np.float64) + 1.0 - origin
         self.moments = {which: CellMoments(origin, config.thickness_cell_m, extent) for which in ("before", "after")}
@@ -88,10 +100,13 @@ class CloudViews:
         time01 = ((np.asarray(stamps_s, dtype=np.float64) - self.t0_s) / self.duration_s).astype(np.float32)
         half = 0.5 * self.config.section_band_m
         for which, xyz in (("before", xyz_before), ("after", xyz_after)):
-            for z in self.heights:
+            for k, z in enumerate(self.heights):
                 band = np.abs(xyz[:, 2] - z) <= half
                 raster = self.rasters.setdefault((z, which), SectionRaster(self.grid))
                 raster.add(xyz[band, :2], time01[band])
+                if k == 0 and which == "after":
+                    shift = xyz_after[band, :2] - xyz_before[band, :2]
+                    self.corrections.add(xyz_after[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
             stride = self.config.thickness_stride
             self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
         self.n_points += len(stamps_s)
@@ -110,13 +125,16 @@ class CloudViews:
         for k, z in enumerate(self.heights or []):
             entry: dict[str, Any] = {"z_m": z, "band_m": self.config.section_band_m, "pixel_m": self.grid.pixel_m,
                                      "width_px": self.grid.width, "height_px": self.grid.height, "images": {}}
+            places = self.corrections.largest(INSETS) if k == 0 else []
             for which in ("before", "after"):
                 raster = self.rasters[(z, which)]
                 name = f"section_{k + 1}_{which}.png"
                 image = raster.render(f"{which.upper()} z={z:.2f} m", self.duration_s)
+                draw_boxes(image, self.grid, title_strip_px(self.grid.height, self.grid.width), places, INSET_M)
                 _write_png(figures / name, image)
                 entry["images"][which] = f"{FIGURES_DIR}/{name}"
                 entry[f"n_points_{which}"] = raster.n_points
+            entry["insets"] = [self._inset(figures, k, n, place) for n, place in enumerate(places)]
             sections.append(entry)
         cloud: dict[str, Any] = {
             "n_points": self.n_points,
@@ -131,6 +149,20 @@ class CloudViews:
         with atomic_path(figures / SUMMARY_NAME, overwrite=True) as tmp:
             tmp.write_text(json.dumps(_clean(result), indent=1) + "\n", encoding="utf-8")
         return result
+
+    def _inset(self, figures: Path, k: int, n: int, place: tuple[float, float, float]) -> dict[str, Any]:
+        x, y, shift_m = place
+        z = (self.heights or [])[k]
+        entry: dict[str, Any] = {"x_m": x, "y_m": y, "size_m": INSET_M, "correction_mm": shift_m * 1000.0,
+                                 "images": {}}
+        for which in ("before", "after"):
+            window = crop(self.rasters[(z, which)].mean_time(), self.grid, x, y, INSET_M)
+            big, factor = enlarge(window, 600)
+            image = render_time_image(big, self.grid.pixel_m / factor, f"{n + 1} {which.upper()}", self.duration_s)
+            name = f"section_{k + 1}_inset_{n + 1}_{which}.png"
+            _write_png(figures / name, image)
+            entry["images"][which] = f"{FIGURES_DIR}/{name}"
+        return entry
 
     def _thickness(self, figures: Path) -> dict[str, Any]:
         result = compare(self.moments["before"], self.moments["after"], MIN_CELL_POINTS)

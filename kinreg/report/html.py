@@ -81,6 +81,8 @@ pre{background:#fafafa;border:1px solid #eee;padding:10px;overflow-x:auto;font-s
 footer{color:#888;font-size:.8em;margin-top:2em}
 figure{margin-bottom:16px;min-width:0}
 .pair{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(420px,100%),1fr));gap:8px}
+.insets{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(400px,100%),1fr));gap:12px}
+.insets .pair{grid-template-columns:1fr 1fr}
 img.cloud{width:100%;height:auto;display:block;border:1px solid #eee;image-rendering:auto}
 @media (max-width:640px){main{padding:10px 8px 30px}.card{padding:8px}td,th{padding:3px 5px}
 .figures td{white-space:normal;font-size:1em}.card td:first-child{white-space:normal}}

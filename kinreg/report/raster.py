@@ -111,7 +111,9 @@ def _paint(image: Image, mask: NDArray[np.bool_], x0: int, y0: int, colour: tupl
 def fill_rect(image: Image, x0: int, y0: int, x1: int, y1: int, colour: tuple[int, int, int]) -> None:
     """Fill the pixels x0 <= x < x1, y0 <= y < y1 (clipped to the image)."""
     h, w = image.shape[:2]
-    image[max(y0, 0):min(y1, h), max(x0, 0):min(x1, w)] = colour
+    ya, yb, xa, xb = (min(max(v, 0), limit) for v, limit in ((y0, h), (y1, h), (x0, w), (x1, w)))
+    if ya < yb and xa < xb:
+        image[ya:yb, xa:xb] = colour
 
 
 def nice_length(target: float) -> float:
@@ -166,7 +168,7 @@ def draw_colour_bar(image: Image, left: str, right: str, heat: bool = False) -> 
     """A horizontal colour bar with its two end labels in the bottom right corner."""
     h, w = image.shape[:2]
     scale = font_scale(image)
-    length = max(w // 5, 40)
+    length = max(w // 5, text_size(left, scale)[0] + text_size(right, scale)[0] + 4 * scale)
     x0, y1 = w - 4 * scale - length, h - 4 * scale
     bar_h = 3 * scale
     fill_rect(image, x0 - scale, y1 - bar_h - 11 * scale, w - 3 * scale, y1 + scale, WHITE)

@@ -90,11 +90,15 @@ class SectionRaster:
         return render_time_image(self.mean_time(), self.grid.pixel_m, title, duration_s)
 
 
+def title_strip_px(height: int, width: int) -> int:
+    """Rows above the raster of :func:`render_time_image` (the title's strip; the bars get their own below)."""
+    return 12 * font_scale(np.empty((height, width, 0), dtype=np.uint8))
+
+
 def render_time_image(mean_time: FloatArray, pixel_m: float, title: str, duration_s: float) -> Image:
     """An RGB image of relative times in [0, 1] (NaN: empty, white) with its furniture."""
     h, w = mean_time.shape
-    scale = font_scale(np.empty((h, w, 0), dtype=np.uint8))
-    top, bottom = 12 * scale, 16 * scale  # strips for the title and for the scale and colour bars
+    top, bottom = title_strip_px(h, w), 16 * font_scale(np.empty((h, w, 0), dtype=np.uint8))
     image = np.empty((h + top + bottom, w, 3), dtype=np.uint8)
     image[:] = WHITE
     full = np.isfinite(mean_time)
@@ -131,3 +135,75 @@ def choose_heights(z: FloatArray, band_m: float) -> list[float]:
     scores = (np.searchsorted(zs, candidates + band_m / 2) - np.searchsorted(zs, candidates - band_m / 2)).astype(float)
     scores[scores > 1.5 * np.median(scores)] = -1.0  # a horizontal surface in the band
     return [round(float(candidates[int(np.argmax(scores))]), 2)]
+
+
+class CorrectionMap:
+    """The mean horizontal correction of the section points per coarse cell (``cell_m``), to find
+    the places where the correction is largest (the insets)."""
+
+    def __init__(self, grid: Grid, cell_m: float = 1.0) -> None:
+        factor = max(1, round(cell_m / grid.pixel_m))
+        self.coarse = Grid(grid.x0, grid.y1, grid.pixel_m * factor, -(-grid.width // factor), -(-grid.height // factor))
+        self.shift_sum = np.zeros(self.coarse.width * self.coarse.height)
+        self.count = np.zeros(self.coarse.width * self.coarse.height)
+
+    def add(self, xy_after: FloatArray, shift_m: FloatArray) -> None:
+        index, inside = self.coarse.flat_index(xy_after)
+        size = len(self.count)
+        self.shift_sum += np.bincount(index[inside], weights=shift_m[inside], minlength=size)
+        self.count += np.bincount(index[inside], minlength=size)
+
+    def largest(self, n: int, min_points: int = 20, min_distance_m: float = 4.0) -> list[tuple[float, float, float]]:
+        """Up to ``n`` places (x, y, mean correction [m]), largest first, ``min_distance_m`` apart."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(self.count >= min_points, self.shift_sum / self.count, -1.0)
+        places: list[tuple[float, float, float]] = []
+        for flat in np.argsort(mean)[::-1]:
+            if mean[flat] < 0 or len(places) == n:
+                break
+            row, col = divmod(int(flat), self.coarse.width)
+            x = self.coarse.x0 + (col + 0.5) * self.coarse.pixel_m
+            y = self.coarse.y1 - (row + 0.5) * self.coarse.pixel_m
+            if all(np.hypot(x - px, y - py) >= min_distance_m for px, py, _ in places):
+                places.append((x, y, float(mean[flat])))
+        return places
+
+
+def crop(mean_time: FloatArray, grid: Grid, x: float, y: float, size_m: float) -> FloatArray:
+    """The square window of ``size_m`` centred on (x, y) of a (height, width) raster, NaN outside."""
+    half = int(round(size_m / grid.pixel_m / 2))
+    col = int((x - grid.x0) / grid.pixel_m)
+    row = int((grid.y1 - y) / grid.pixel_m)
+    out = np.full((2 * half, 2 * half), np.nan)
+    r0, c0 = row - half, col - half
+    ra, rb = max(r0, 0), min(r0 + 2 * half, grid.height)
+    ca, cb = max(c0, 0), min(c0 + 2 * half, grid.width)
+    if ra < rb and ca < cb:
+        out[ra - r0:rb - r0, ca - c0:cb - c0] = mean_time[ra:rb, ca:cb]
+    return out
+
+
+def enlarge(values: FloatArray, target_px: int) -> tuple[FloatArray, int]:
+    """Each pixel repeated so that the larger side is about ``target_px``; returns the factor."""
+    factor = max(1, target_px // max(values.shape))
+    return np.kron(values, np.ones((factor, factor))), factor
+
+
+def draw_boxes(image: Image, grid: Grid, top_px: int, places: list[tuple[float, float, float]], size_m: float) -> None:
+    """Outline each inset's window on a section image (raster starting ``top_px`` below the top),
+    numbered 1, 2, 3."""
+    from kinreg.report.raster import BLACK, draw_text, fill_rect
+
+    scale = font_scale(image)
+    half = int(round(size_m / grid.pixel_m / 2))
+    for k, (x, y, _) in enumerate(places):
+        col = int((x - grid.x0) / grid.pixel_m)
+        row = top_px + int((grid.y1 - y) / grid.pixel_m)
+        x0, x1, y0, y1 = col - half, col + half, row - half, row + half
+        for a, b, c, d in ((x0, y0, x1, y0 + scale), (x0, y1 - scale, x1, y1), (x0, y0, x0 + scale, y1),
+                           (x1 - scale, y0, x1, y1)):
+            fill_rect(image, a, b, c, d, (220, 0, 0))
+        h, w = image.shape[:2]
+        tx = min(max(x0 + 2 * scale, 2 * scale), w - 7 * scale)  # inside the box, inside the image
+        ty = min(max(y0 + 2 * scale, 2 * scale), h - 9 * scale)
+        draw_text(image, str(k + 1), tx, ty, scale, colour=BLACK)
