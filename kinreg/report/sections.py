@@ -171,7 +171,7 @@ class CorrectionMap:
 
 def crop(mean_time: FloatArray, grid: Grid, x: float, y: float, size_m: float) -> FloatArray:
     """The square window of ``size_m`` centred on (x, y) of a (height, width) raster, NaN outside."""
-    half = int(round(size_m / grid.pixel_m / 2))
+    half = round(size_m / grid.pixel_m / 2)
     col = int((x - grid.x0) / grid.pixel_m)
     row = int((grid.y1 - y) / grid.pixel_m)
     out = np.full((2 * half, 2 * half), np.nan)
@@ -186,7 +186,8 @@ def crop(mean_time: FloatArray, grid: Grid, x: float, y: float, size_m: float) -
 def enlarge(values: FloatArray, target_px: int) -> tuple[FloatArray, int]:
     """Each pixel repeated so that the larger side is about ``target_px``; returns the factor."""
     factor = max(1, target_px // max(values.shape))
-    return np.kron(values, np.ones((factor, factor))), factor
+    big: FloatArray = np.kron(values, np.ones((factor, factor)))
+    return big, int(factor)
 
 
 def draw_boxes(image: Image, grid: Grid, top_px: int, places: list[tuple[float, float, float]], size_m: float) -> None:
@@ -195,7 +196,7 @@ def draw_boxes(image: Image, grid: Grid, top_px: int, places: list[tuple[float, 
     from kinreg.report.raster import BLACK, draw_text, fill_rect
 
     scale = font_scale(image)
-    half = int(round(size_m / grid.pixel_m / 2))
+    half = round(size_m / grid.pixel_m / 2)
     for k, (x, y, _) in enumerate(places):
         col = int((x - grid.x0) / grid.pixel_m)
         row = top_px + int((grid.y1 - y) / grid.pixel_m)
