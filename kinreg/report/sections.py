@@ -186,7 +186,7 @@ def crop(mean_time: FloatArray, grid: Grid, x: float, y: float, size_m: float) -
 def enlarge(values: FloatArray, target_px: int) -> tuple[FloatArray, int]:
     """Each pixel repeated so that the larger side is about ``target_px``; returns the factor."""
     factor = max(1, target_px // max(values.shape))
-    big: FloatArray = np.kron(values, np.ones((factor, factor)))
+    big = np.kron(values, np.ones((factor, factor))).astype(np.float64)
     return big, int(factor)
 
 
