@@ -51,6 +51,70 @@ def thickness_figure(report: dict[str, Any]) -> tuple[str, str, str]:
             f"{_fmt(th.get('median_before_mm'), 1)} \u2192 {_fmt(th.get('median_after_mm'), 1, 'mm')}")
 
 
+def _histogram_svg(deviations: dict[str, Any]) -> str:
+    """Before (grey) and after (blue) distance histograms as one inline SVG, shares per bin."""
+    edges = deviations.get("edges_mm") or [None, None]
+    series = {w: (deviations.get(w) or {}).get("histogram") or [] for w in ("before", "after")}
+    if not all(isinstance(e, int | float) for e in edges) or not any(series.values()):
+        return ""
+    width, height, left, bottom = 560, 200, 40, 24
+    shares = {w: [v / max(sum(h), 1) for v in h] for w, h in series.items() if h}
+    top = max(max(s) for s in shares.values()) or 1.0
+    lines = []
+    for w, colour in (("before", "#999"), ("after", "#1f6fb4")):
+        if w not in shares:
+            continue
+        n = len(shares[w])
+        points = " ".join(f"{left + (k + 0.5) * (width - left - 10) / n:.1f},"
+                          f"{height - bottom - v / top * (height - bottom - 20):.1f}" for k, v in enumerate(shares[w]))
+        lines.append(f'<polyline fill="none" stroke="{colour}" stroke-width="1.5" points="{points}"/>')
+    noise = deviations.get("noise_mm")
+    lo, hi = float(edges[0]), float(edges[1])
+
+    def x(mm: float) -> float:
+        return left + (mm - lo) / (hi - lo) * (width - left - 10)
+
+    ticks = "".join(f'<line class="grid" x1="{x(v):.1f}" x2="{x(v):.1f}" y1="20" y2="{height - bottom}"/>'
+                    f'<text x="{x(v):.1f}" y="{height - 6}" text-anchor="middle" font-size="11">{v:g}</text>'
+                    for v in (lo, lo / 2, 0.0, hi / 2, hi))
+    band = ""
+    if isinstance(noise, int | float) and noise > 0:
+        band = (f'<rect x="{x(-2 * noise):.1f}" y="20" width="{x(2 * noise) - x(-2 * noise):.1f}" '
+                f'height="{height - bottom - 20}" fill="#1f6fb4" opacity="0.08"/>')
+    legend = ('<text x="48" y="14" font-size="11">grey: before, blue: after; shaded: \u00b12 \u00d7 noise; '
+              'distance [mm]</text>')
+    return (f'<svg class="plot" viewBox="0 0 {width} {height}" role="img" aria-label="Histogram of the signed '
+            f'distances to the static planes before and after">{band}{ticks}{"".join(lines)}{legend}</svg>')
+
+
+def static_deviations(cloud: dict[str, Any]) -> str:
+    """The kinematic-vs-static card: figures before and after, and the histogram."""
+    dev = cloud.get("static_deviations")
+    if not isinstance(dev, dict):
+        return ""
+    noise = dev.get("noise_mm")
+
+    def row(label: str, key: str, digits: int, unit: str, scale: float = 1.0) -> str:
+        cells = []
+        for w in ("before", "after"):
+            v = (dev.get(w) or {}).get(key)
+            cells.append(_tag("td", _esc(_fmt(v * scale if isinstance(v, int | float) else None, digits, unit)),
+                              class_="num"))
+        return _tag("tr", _tag("td", _esc(label)) + "".join(cells))
+
+    head = _tag("tr", "<th></th>" + _tag("th", "before", class_="num") + _tag("th", "after", class_="num"))
+    body = (row("points compared", "n", 0, "") + row("mean", "mean_mm", 2, "mm") + row("RMS", "rms_mm", 2, "mm")
+            + row(f"within 2 \u00d7 noise ({_fmt(noise, 1, 'mm')})", "share_within_2_noise", 1, "%", 100.0)
+            + row("within 3 \u00d7 noise", "share_within_3_noise", 1, "%", 100.0))
+    note = _tag("p", f"Signed distance of the kinematic points to the static cloud's local planes "
+                f"({_count(dev.get('n_core_points'))} planar cubes of {_fmt(dev.get('cell_m'), 2, 'm')}, along the "
+                f"static normal; every {dev.get('stride', 1)}th point; farther than "
+                f"{_fmt(dev.get('max_distance_mm'), 0, 'mm')} not counted). Noise: the corrected cloud's median "
+                "plane thickness.", class_="sub")
+    return _tag("div", "<h3>Kinematic vs static</h3>" + _tag("table", head + body) + _histogram_svg(dev) + note,
+                class_="card")
+
+
 def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
     """The page section of ``report["cloud"]``; empty when the run has none."""
     cloud = _get(report, "cloud", default=None)
@@ -88,6 +152,7 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                 f"correction of its points {_fmt(inset.get('correction_mm'), 1, 'mm')}. Left before, right after."))
         if figures:
             parts.append(_tag("div", "".join(figures), class_="insets"))
+    cards = static_deviations(cloud)
     th = cloud.get("thickness")
     if isinstance(th, dict):
         rows = [
@@ -102,11 +167,12 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
             ("cell", _fmt(th.get("cell_m"), 2, "m")),
         ]
         body = "".join(_tag("tr", _tag("td", _esc(a)) + _tag("td", _esc(b), class_="num")) for a, b in rows)
-        parts.append(_tag("div", "<h3>Plane thickness</h3>" + _tag("table", body)
+        parts.append(_tag("div", _tag("div", "<h3>Plane thickness</h3>" + _tag("table", body)
                           + _tag("p", "Per cube of the grid: the root of the smallest eigenvalue of its points' "
                                  "covariance where they form a plane. It needs no ground truth: a wall seen twice "
                                  "with drift between is thick, a corrected one as thin as the scanner's noise.",
-                                 class_="sub"), class_="card"))
+                                 class_="sub"), class_="card") + cards, class_="cards"))
+        cards = ""
         images = th.get("images") or {}
         if images:
             vmax = _fmt(th.get("map_max_mm"), 0, "mm")
@@ -118,4 +184,6 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                 f"Plane thickness per column of {_fmt(th.get('cell_m'), 1, 'm')} cells (the largest over its planar "
                 f"cells), left before, right after; light yellow 0 to dark red {vmax} and more; grey: no planar "
                 "cell."))
+    if cards:
+        parts.append(cards)
     return "\n".join(parts)

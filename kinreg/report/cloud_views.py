@@ -10,6 +10,8 @@ keeps only rasters and per-cell moments (bounded memory, no extra pass over the 
   first chunk of points (:func:`~kinreg.report.sections.choose_heights`);
 - ``cloud.thickness``: the plane-thickness map and the median ratio after/before over the cells
   planar in both (:mod:`kinreg.report.thickness`);
+- ``cloud.static_deviations`` (with ``--static``): signed distances of the kinematic points to the
+  static cloud's local planes before and after (:mod:`kinreg.report.deviations`);
 - ``crs``: the coordinate reference system of the input cloud (:mod:`kinreg.report.crs`).
 
 The same entries are kept in ``DIR/figures/cloud.json``: a resumed run whose corrected cloud is
@@ -33,6 +35,7 @@ from kinreg.geometry import FloatArray
 from kinreg.io.atomic import atomic_path
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.crs import describe_crs
+from kinreg.report.deviations import Deviations, StaticPlanes
 from kinreg.report.raster import (
     WHITE,
     Image,
@@ -75,7 +78,7 @@ class CloudViews:
     """
 
     def __init__(self, config: ReportConfig, bounds_min: FloatArray, bounds_max: FloatArray, t0_s: float,
-                 t1_s: float, crs: dict[str, Any] | None = None) -> None:
+                 t1_s: float, crs: dict[str, Any] | None = None, static_planes: StaticPlanes | None = None) -> None:
         self.config = config
         self.grid = Grid.covering(bounds_min, bounds_max, config.section_pixel_m, config.section_max_px)
         self.t0_s, self.duration_s = float(t0_s), max(float(t1_s) - float(t0_s), 1e-9)
@@ -87,6 +90,7 @@ class CloudViews:
         extent = np.asarray(bounds_max, dtype=np.float64) + 1.0 - origin
         self.moments = {which: CellMoments(origin, config.thickness_cell_m, extent) for which in ("before", "after")}
         self.crs = crs or {}
+        self.deviations = None if static_planes is None else Deviations(static_planes)
         self.n_points = 0
         self.seconds = {"gather": 0.0, "figures": 0.0}  # in add (while corrected.laz is written), in finish
 
@@ -109,6 +113,8 @@ class CloudViews:
                     self.corrections.add(xyz_after[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
             stride = self.config.thickness_stride
             self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
+            if self.deviations is not None:
+                self.deviations.add(which, xyz)
         self.n_points += len(stamps_s)
         self.seconds["gather"] += time.perf_counter() - start
 
@@ -144,6 +150,9 @@ class CloudViews:
             "thickness": self._thickness(figures),
             "seconds": self.seconds,
         }
+        if self.deviations is not None:  # the kinematic noise: the corrected cloud's median plane thickness
+            noise = cloud["thickness"].get("median_after_mm")
+            cloud["static_deviations"] = self.deviations.figures(noise if noise and math.isfinite(noise) else 5.0)
         self.seconds["figures"] = time.perf_counter() - start
         result = {"cloud": cloud, "crs": self.crs}
         with atomic_path(figures / SUMMARY_NAME, overwrite=True) as tmp:
@@ -236,10 +245,11 @@ def _clean(value: Any) -> Any:
 
 
 def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajectories: Sequence[Trajectory],
-                         references: ReferencePlanes | None = None) -> CloudViews:
+                         references: ReferencePlanes | None = None, static: Path | None = None) -> CloudViews:
     """A :class:`CloudViews` over the header bounds of every cloud (mapped into the trajectories'
     frame by the references' ``[initial_transform]``, as corrected.laz is) and the time range of
-    every trajectory; the CRS from the first cloud."""
+    every trajectory; the CRS from the first cloud; with ``static`` (registered static scans, E57),
+    the static cloud's local planes for the kinematic-vs-static deviations."""
     from kinreg.io.cloud import open_cloud
     from kinreg.io.las import read_las_crs
 
@@ -267,7 +277,12 @@ def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajector
     t1 = max(float(np.max(s)) for s in stamps_s) if stamps_s else 1.0
     crs = describe_crs(read_las_crs(clouds[0])) if clouds and Path(clouds[0]).suffix.lower() in (".las", ".laz") \
         else {}
-    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs)
+    planes = None
+    if static is not None and config.cloud_views:
+        from kinreg.report.deviations import static_planes_from_e57
+
+        planes = static_planes_from_e57(static, np.asarray(bounds_min) - 1.0)
+    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs, planes)
 
 
 def _without_views(config: ReportConfig) -> ReportConfig:

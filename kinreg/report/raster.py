@@ -152,16 +152,16 @@ def draw_scale_bar(image: Image, pixel_m: float) -> None:
 
 
 def draw_north_arrow(image: Image) -> None:
-    """An arrow pointing up (+y of the frame) with an ``N``, in the top right corner."""
+    """An arrow pointing up (+y of the frame) with an ``N`` to its left, in the top right corner."""
     w = image.shape[1]
     scale = font_scale(image)
-    size = 14 * scale
-    cx, top = w - 6 * scale - size // 2, 4 * scale
-    fill_rect(image, cx - size // 2 - scale, top - scale, cx + size // 2 + scale, top + size + 10 * scale, WHITE)
+    size = 9 * scale
+    cx, top = w - 4 * scale - size // 2, 2 * scale
+    fill_rect(image, cx - size // 2 - 8 * scale, top - scale, cx + size // 2 + scale, top + size + scale, WHITE)
     for r in range(size):  # a filled triangle, one pixel row at a time
         hw = r * (size // 2) // max(size - 1, 1)
         fill_rect(image, cx - hw, top + r, cx + hw + 1, top + r + 1, BLACK)
-    draw_text(image, "N", cx - (5 * scale) // 2, top + size + 2 * scale, scale, box=False)
+    draw_text(image, "N", cx - size // 2 - 7 * scale, top + size - 7 * scale, scale, box=False)
 
 
 def draw_colour_bar(image: Image, left: str, right: str, heat: bool = False) -> None:

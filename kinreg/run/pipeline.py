@@ -251,7 +251,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
                        for k in range(len(runs))]
         plan = plan_large_outputs(folder, out, outputs, runs, sliced, corrections, adjusted.result.poses, config,
                                   references)
-        views = cloud_views_for_runs(config.report, [r.cloud for r in runs], kinematic.trajectories, references)
+        views = cloud_views_for_runs(config.report, [r.cloud for r in runs], kinematic.trajectories, references,
+                                     inputs.static)
         corrected = write_corrected_runs(out, runs, kinematic.trajectories, corrections, plan, folder, config,
                                          references, progress, views)
         clock.lap("corrected cloud")
