@@ -53,10 +53,8 @@ from kinreg.report.sections import (
     SectionRaster,
     choose_heights,
     crop,
-    draw_boxes,
     enlarge,
     render_time_image,
-    title_strip_px,
 )
 from kinreg.report.thickness import CellMoments, column_map, compare
 from kinreg.types import Trajectory
@@ -135,8 +133,7 @@ class CloudViews:
             for which in ("before", "after"):
                 raster = self.rasters[(z, which)]
                 name = f"section_{k + 1}_{which}.png"
-                image = raster.render(f"{which.upper()} z={z:.2f} m", self.duration_s)
-                draw_boxes(image, self.grid, title_strip_px(self.grid.height, self.grid.width), places, INSET_M)
+                image = raster.render(f"{which.upper()} z={z:.2f} m", self.duration_s, places, INSET_M)
                 _write_png(figures / name, image)
                 entry["images"][which] = f"{FIGURES_DIR}/{name}"
                 entry[f"n_points_{which}"] = raster.n_points

@@ -10,6 +10,7 @@ Memory is the rasters only (8 bytes per pixel), whatever the number of points.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -84,10 +85,15 @@ class SectionRaster:
         mean[self.count == 0] = np.nan
         return mean.reshape(self.grid.height, self.grid.width).astype(np.float64)
 
-    def render(self, title: str, duration_s: float) -> Image:
-        """The section as an RGB image: points coloured by time, with the title, a scale bar, a
-        north arrow (+y up) and the time colour bar."""
-        return render_time_image(self.mean_time(), self.grid.pixel_m, title, duration_s)
+    def render(self, title: str, duration_s: float, places: Sequence[tuple[float, float, float]] = (),
+               inset_m: float = 3.0, north: bool = True) -> Image:
+        """The section as an RGB image: points coloured by time, the windows of ``places``
+        outlined, with the title, a scale bar, a north arrow (+y up; none for a vertical section
+        with ``north`` False) and the time colour bar."""
+        def boxes(image: Image, top: int) -> None:
+            draw_boxes(image, self.grid, top, places, inset_m)
+
+        return render_time_image(self.mean_time(), self.grid.pixel_m, title, duration_s, boxes, north)
 
 
 def title_strip_px(height: int, width: int) -> int:
@@ -95,17 +101,22 @@ def title_strip_px(height: int, width: int) -> int:
     return 12 * font_scale(np.empty((height, width, 0), dtype=np.uint8))
 
 
-def render_time_image(mean_time: FloatArray, pixel_m: float, title: str, duration_s: float) -> Image:
-    """An RGB image of relative times in [0, 1] (NaN: empty, white) with its furniture."""
+def render_time_image(mean_time: FloatArray, pixel_m: float, title: str, duration_s: float,
+                      overlay: Callable[[Image, int], None] | None = None, north: bool = True) -> Image:
+    """An RGB image of relative times in [0, 1] (NaN: empty, white) with its furniture;
+    ``overlay(image, top)`` draws onto the raster (starting ``top`` rows down) before the furniture."""
     h, w = mean_time.shape
     top, bottom = title_strip_px(h, w), 16 * font_scale(np.empty((h, w, 0), dtype=np.uint8))
     image = np.empty((h + top + bottom, w, 3), dtype=np.uint8)
     image[:] = WHITE
     full = np.isfinite(mean_time)
     image[top:top + h][full] = colour_map(mean_time[full])
+    if overlay is not None:
+        overlay(image, top)
     draw_label(image, title)
     draw_scale_bar(image, pixel_m)
-    draw_north_arrow(image)
+    if north:
+        draw_north_arrow(image)
     draw_colour_bar(image, "0 s", f"{duration_s:.0f} s")
     return image
 
@@ -190,7 +201,8 @@ def enlarge(values: FloatArray, target_px: int) -> tuple[FloatArray, int]:
     return big, int(factor)
 
 
-def draw_boxes(image: Image, grid: Grid, top_px: int, places: list[tuple[float, float, float]], size_m: float) -> None:
+def draw_boxes(image: Image, grid: Grid, top_px: int, places: Sequence[tuple[float, float, float]],
+               size_m: float) -> None:
     """Outline each inset's window on a section image (raster starting ``top_px`` below the top),
     numbered 1, 2, 3."""
     from kinreg.report.raster import BLACK, draw_text, fill_rect
