@@ -242,3 +242,35 @@ def test_insets_where_the_correction_is_largest(drifted):
             assert np.hypot(insets[a]["x_m"] - insets[b]["x_m"], insets[a]["y_m"] - insets[b]["y_m"]) >= 4.0
         image = decode_png((out / insets[a]["images"]["before"]).read_bytes())
         assert 500 <= max(image.shape[:2]) <= 800
+
+
+def test_longest_straight_stretch_and_the_vertical_section(tmp_path):
+    from kinreg.report.sections import VerticalPlane, longest_straight_stretch
+
+    # An L: 8 m east along y = 3, then 4 m north; 0.5 m/s, with 2 cm of sway.
+    t = np.arange(0.0, 24.0, 0.01)
+    xy = np.where(t[:, None] < 16, np.column_stack([1 + 0.5 * t, np.full_like(t, 3.0)]),
+                  np.column_stack([np.full_like(t, 9.0), 3 + 0.5 * (t - 16)]))
+    xy = xy + 0.02 * np.sin(t)[:, None]
+    start, end = longest_straight_stretch(t, xy)
+    assert np.hypot(*(end - start)) == pytest.approx(8.0, abs=0.7)
+    assert abs(start[1] - 3.0) < 0.1 and abs(end[1] - 3.0) < 0.5
+    plane = VerticalPlane(np.array([1.0, 3.0]), np.array([9.0, 3.0]), 0.1)
+    assert plane.azimuth_deg == pytest.approx(90.0)
+    projected, inside = plane.project(np.array([[5.0, 3.04, 1.0], [5.0, 3.2, 1.0], [0.0, 3.0, 2.0]]))
+    assert inside.tolist() == [True, False, True]
+    assert projected.tolist() == [[4.0, 1.0], [-1.0, 2.0]]
+    # Through the drifted room: the section across the walls x = 0 and x = 10 shows them doubled before.
+    before, after, times = drifted_pass(np.random.default_rng(6), 0.06)
+    views = CloudViews(ReportConfig(), np.minimum(before.min(0), after.min(0)), np.maximum(before.max(0),
+                       after.max(0)), 0.0, 150.0, vertical=VerticalPlane(np.array([-0.5, 3.4]),
+                                                                         np.array([11.0, 3.4]), 0.1))
+    views.add(before, after, times)
+    vertical = views.finish(tmp_path)["cloud"]["vertical_section"]
+    assert vertical["n_points_before"] > 1000
+    rasters = {w: views.vertical_rasters[w].count.reshape(views.vertical_grid.height, -1) for w in ("before", "after")}
+    grid = views.vertical_grid
+    wall = int((10.0 + OFF[0] + 0.5 - grid.x0) / grid.pixel_m)  # distance along the line to the wall x = 10
+    columns = {w: np.flatnonzero(r[:, wall - 8:wall + 8].sum(axis=0) >= 5) for w, r in rasters.items()}
+    assert np.ptp(columns["before"]) >= 3 and np.ptp(columns["after"]) <= 1
+    assert decode_png((tmp_path / vertical["images"]["before"]).read_bytes()).shape[1] == views.vertical_grid.width

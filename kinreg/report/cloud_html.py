@@ -152,6 +152,19 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                 f"correction of its points {_fmt(inset.get('correction_mm'), 1, 'mm')}. Left before, right after."))
         if figures:
             parts.append(_tag("div", "".join(figures), class_="insets"))
+    vertical = cloud.get("vertical_section")
+    if isinstance(vertical, dict):
+        images = vertical.get("images") or {}
+        start, end = vertical.get("start_xy") or [None, None], vertical.get("end_xy") or [None, None]
+        where = (f"from ({_fmt(start[0], 1)}, {_fmt(start[1], 1)}) to ({_fmt(end[0], 1)}, {_fmt(end[1], 1, 'm')}), "
+                 f"azimuth {_fmt(vertical.get('azimuth_deg'), 0)}\u00b0")
+        parts.append(_pair(
+            _image(images.get("before"), f"Vertical section {where}, before the correction, coloured by time", base_dir),
+            _image(images.get("after"), f"Vertical section {where}, after the correction, coloured by time", base_dir),
+            f"Vertical section along the longest straight stretch of the trajectory, {where}, "
+            f"{_fmt(vertical.get('length_m'), 1, 'm')} long, band {_fmt(vertical.get('band_m'), 2, 'm')}; "
+            "horizontal axis: distance along the line, vertical: height (the scale bar holds for both). "
+            "Left before, right after."))
     cards = static_deviations(cloud)
     th = cloud.get("thickness")
     if isinstance(th, dict):

@@ -8,6 +8,8 @@ keeps only rasters and per-cell moments (bounded memory, no extra pass over the 
 - ``cloud.sections``: horizontal sections before and after, coloured by time
   (:mod:`kinreg.report.sections`), at ``[report] section_heights_m`` or one height chosen from the
   first chunk of points (:func:`~kinreg.report.sections.choose_heights`);
+- ``cloud.vertical_section``: a vertical section before and after along the longest straight
+  stretch of the (first run's) trajectory;
 - ``cloud.thickness``: the plane-thickness map and the median ratio after/before over the cells
   planar in both (:mod:`kinreg.report.thickness`);
 - ``cloud.static_deviations`` (with ``--static``): signed distances of the kinematic points to the
@@ -51,9 +53,11 @@ from kinreg.report.sections import (
     CorrectionMap,
     Grid,
     SectionRaster,
+    VerticalPlane,
     choose_heights,
     crop,
     enlarge,
+    longest_straight_stretch,
     render_time_image,
 )
 from kinreg.report.thickness import CellMoments, column_map, compare
@@ -76,7 +80,8 @@ class CloudViews:
     """
 
     def __init__(self, config: ReportConfig, bounds_min: FloatArray, bounds_max: FloatArray, t0_s: float,
-                 t1_s: float, crs: dict[str, Any] | None = None, static_planes: StaticPlanes | None = None) -> None:
+                 t1_s: float, crs: dict[str, Any] | None = None, static_planes: StaticPlanes | None = None,
+                 vertical: VerticalPlane | None = None) -> None:
         self.config = config
         self.grid = Grid.covering(bounds_min, bounds_max, config.section_pixel_m, config.section_max_px)
         self.t0_s, self.duration_s = float(t0_s), max(float(t1_s) - float(t0_s), 1e-9)
@@ -84,6 +89,12 @@ class CloudViews:
         self.automatic = not config.section_heights_m
         self.rasters: dict[tuple[float, str], SectionRaster] = {}
         self.corrections = CorrectionMap(self.grid)  # of the first section's points
+        self.vertical = vertical
+        if vertical is not None:
+            lo = np.array([-1.0, float(bounds_min[2]) - 0.3])
+            hi = np.array([vertical.length_m + 1.0, float(bounds_max[2]) + 0.3])
+            self.vertical_grid = Grid.covering(lo, hi, config.section_pixel_m, config.section_max_px, margin_m=0.0)
+            self.vertical_rasters = {w: SectionRaster(self.vertical_grid) for w in ("before", "after")}
         origin = np.asarray(bounds_min, dtype=np.float64) - 1.0  # corrected points may leave the input's box
         extent = np.asarray(bounds_max, dtype=np.float64) + 1.0 - origin
         self.moments = {which: CellMoments(origin, config.thickness_cell_m, extent) for which in ("before", "after")}
@@ -113,6 +124,9 @@ class CloudViews:
             self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
             if self.deviations is not None:
                 self.deviations.add(which, xyz)
+            if self.vertical is not None:
+                projected, inside = self.vertical.project(xyz)
+                self.vertical_rasters[which].add(projected, time01[inside])
         self.n_points += len(stamps_s)
         self.seconds["gather"] += time.perf_counter() - start
 
@@ -147,6 +161,8 @@ class CloudViews:
             "thickness": self._thickness(figures),
             "seconds": self.seconds,
         }
+        if self.vertical is not None:
+            cloud["vertical_section"] = self._vertical(figures)
         if self.deviations is not None:  # the kinematic noise: the corrected cloud's median plane thickness
             noise = cloud["thickness"].get("median_after_mm")
             cloud["static_deviations"] = self.deviations.figures(noise if noise and math.isfinite(noise) else 5.0)
@@ -168,6 +184,20 @@ class CloudViews:
             name = f"section_{k + 1}_inset_{n + 1}_{which}.png"
             _write_png(figures / name, image)
             entry["images"][which] = f"{FIGURES_DIR}/{name}"
+        return entry
+
+    def _vertical(self, figures: Path) -> dict[str, Any]:
+        plane = self.vertical
+        assert plane is not None
+        entry: dict[str, Any] = {"start_xy": plane.start_xy.tolist(), "end_xy": plane.end_xy.tolist(),
+                                 "length_m": plane.length_m, "azimuth_deg": plane.azimuth_deg, "band_m": plane.band_m,
+                                 "pixel_m": self.vertical_grid.pixel_m, "images": {}}
+        for which, raster in self.vertical_rasters.items():
+            image = raster.render(f"{which.upper()} VERTICAL", self.duration_s, north=False)
+            name = f"vertical_{which}.png"
+            _write_png(figures / name, image)
+            entry["images"][which] = f"{FIGURES_DIR}/{name}"
+            entry[f"n_points_{which}"] = raster.n_points
         return entry
 
     def _thickness(self, figures: Path) -> dict[str, Any]:
@@ -274,12 +304,16 @@ def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajector
     t1 = max(float(np.max(s)) for s in stamps_s) if stamps_s else 1.0
     crs = describe_crs(read_las_crs(clouds[0])) if clouds and Path(clouds[0]).suffix.lower() in (".las", ".laz") \
         else {}
+    vertical = None
+    if config.cloud_views and trajectories:  # along the longest straight stretch of the first run
+        line = longest_straight_stretch(trajectories[0].stamps_s, trajectories[0].poses.t_xyz[:, :2])
+        vertical = None if line is None else VerticalPlane(line[0], line[1], config.section_band_m)
     planes = None
     if static is not None and config.cloud_views:
         from kinreg.report.deviations import static_planes_from_e57
 
         planes = static_planes_from_e57(static, np.asarray(bounds_min) - 1.0)
-    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs, planes)
+    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs, planes, vertical)
 
 
 def _without_views(config: ReportConfig) -> ReportConfig:

@@ -220,3 +220,59 @@ def draw_boxes(image: Image, grid: Grid, top_px: int, places: Sequence[tuple[flo
         tx = min(max(x0 + 2 * scale, 2 * scale), w - 7 * scale)  # inside the box, inside the image
         ty = min(max(y0 + 2 * scale, 2 * scale), h - 9 * scale)
         draw_text(image, str(k + 1), tx, ty, scale, colour=BLACK)
+
+
+def longest_straight_stretch(stamps_s: FloatArray, xy: FloatArray, tolerance_m: float = 0.3, step_s: float = 1.0,
+                             min_length_m: float = 3.0) -> tuple[FloatArray, FloatArray] | None:
+    """Start and end (x, y) of the longest stretch of the trajectory that stays within
+    ``tolerance_m`` of the straight line between its ends (sampled every ``step_s``); ``None``
+    when no stretch is ``min_length_m`` long."""
+    if len(stamps_s) < 2:
+        return None
+    at = np.searchsorted(stamps_s, np.arange(stamps_s[0], stamps_s[-1], step_s))
+    p = np.asarray(xy, dtype=np.float64)[np.clip(at, 0, len(stamps_s) - 1)]
+    best, best_len = None, min_length_m
+    for i in range(len(p) - 2):
+        j = i + 2
+        while j < len(p):
+            chord = p[j] - p[i]
+            length = float(np.hypot(chord[0], chord[1]))
+            if length > 0:
+                rel = p[i + 1:j] - p[i]
+                off = np.abs(rel[:, 0] * chord[1] - rel[:, 1] * chord[0]) / length
+                along = (rel @ chord) / length
+                if off.max() > tolerance_m or along.min() < -tolerance_m or along.max() > length + tolerance_m:
+                    break
+                if length > best_len:
+                    best, best_len = (p[i].copy(), p[j].copy()), length
+            j += 1
+    return best
+
+
+@dataclasses.dataclass(frozen=True)
+class VerticalPlane:
+    """A vertical section: the line from ``start_xy`` to ``end_xy``, a band of ``band_m`` across it;
+    its raster's x is the distance along the line, its y the height."""
+
+    start_xy: FloatArray
+    end_xy: FloatArray
+    band_m: float
+
+    @property
+    def length_m(self) -> float:
+        return float(np.hypot(*(self.end_xy - self.start_xy)))
+
+    @property
+    def azimuth_deg(self) -> float:
+        """Direction of the line, clockwise from +y (north in a projected frame)."""
+        d = self.end_xy - self.start_xy
+        return float(np.degrees(np.arctan2(d[0], d[1])) % 360.0)
+
+    def project(self, xyz: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """(m, 2) (distance along the line, height) of the points inside the band, and which they are."""
+        u = (self.end_xy - self.start_xy) / self.length_m
+        rel = xyz[:, :2] - self.start_xy
+        across = rel[:, 0] * u[1] - rel[:, 1] * u[0]
+        inside = np.abs(across) <= 0.5 * self.band_m
+        along = rel[inside] @ u
+        return np.column_stack([along, xyz[inside, 2]]), inside
