@@ -274,3 +274,12 @@ def test_longest_straight_stretch_and_the_vertical_section(tmp_path):
     columns = {w: np.flatnonzero(r[:, wall - 8:wall + 8].sum(axis=0) >= 5) for w, r in rasters.items()}
     assert np.ptp(columns["before"]) >= 3 and np.ptp(columns["after"]) <= 1
     assert decode_png((tmp_path / vertical["images"]["before"]).read_bytes()).shape[1] == views.vertical_grid.width
+
+
+def test_every_capital_letter_and_digit_has_a_glyph():
+    import string
+
+    from kinreg.report.raster import _GLYPHS
+
+    assert set(string.ascii_uppercase + string.digits) <= set(_GLYPHS)
+    assert all(g.shape == (7, 5) for g in _GLYPHS.values())

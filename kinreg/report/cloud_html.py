@@ -158,9 +158,10 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
         start, end = vertical.get("start_xy") or [None, None], vertical.get("end_xy") or [None, None]
         where = (f"from ({_fmt(start[0], 1)}, {_fmt(start[1], 1)}) to ({_fmt(end[0], 1)}, {_fmt(end[1], 1, 'm')}), "
                  f"azimuth {_fmt(vertical.get('azimuth_deg'), 0)}\u00b0")
+        alt = "Vertical section {}, {} the correction, coloured by time"
         parts.append(_pair(
-            _image(images.get("before"), f"Vertical section {where}, before the correction, coloured by time", base_dir),
-            _image(images.get("after"), f"Vertical section {where}, after the correction, coloured by time", base_dir),
+            _image(images.get("before"), alt.format(where, "before"), base_dir),
+            _image(images.get("after"), alt.format(where, "after"), base_dir),
             f"Vertical section along the longest straight stretch of the trajectory, {where}, "
             f"{_fmt(vertical.get('length_m'), 1, 'm')} long, band {_fmt(vertical.get('band_m'), 2, 'm')}; "
             "horizontal axis: distance along the line, vertical: height (the scale bar holds for both). "

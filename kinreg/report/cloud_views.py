@@ -193,7 +193,7 @@ class CloudViews:
                                  "length_m": plane.length_m, "azimuth_deg": plane.azimuth_deg, "band_m": plane.band_m,
                                  "pixel_m": self.vertical_grid.pixel_m, "images": {}}
         for which, raster in self.vertical_rasters.items():
-            image = raster.render(f"{which.upper()} VERTICAL", self.duration_s, north=False)
+            image = raster.render(f"{which.upper()} VERTICAL AZ {plane.azimuth_deg:.0f}", self.duration_s, north=False)
             name = f"vertical_{which}.png"
             _write_png(figures / name, image)
             entry["images"][which] = f"{FIGURES_DIR}/{name}"
