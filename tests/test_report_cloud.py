@@ -283,3 +283,14 @@ def test_every_capital_letter_and_digit_has_a_glyph():
 
     assert set(string.ascii_uppercase + string.digits) <= set(_GLYPHS)
     assert all(g.shape == (7, 5) for g in _GLYPHS.values())
+
+
+def test_column_map_takes_the_median_per_column():
+    from kinreg.report.thickness import column_map
+
+    cells = np.array([[0, 0, 0], [0, 0, 1], [0, 0, 2], [1, 1, 0], [5, 5, 0]])
+    thickness = np.array([0.001, 0.009, 0.002, 0.004, 0.5])
+    grid = column_map(cells, thickness, 0, 1, 2, 2)  # i in 0..1, j in 0..1: the cell at (5, 5) is off the map
+    assert grid[1, 0] == pytest.approx(0.002)  # j = 0 is the bottom row
+    assert grid[0, 1] == pytest.approx(0.004)
+    assert np.isnan(grid[0, 0]) and np.isnan(grid[1, 1])

@@ -195,7 +195,7 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                        base_dir),
                 _image(images.get("after"), "Map of the plane thickness per grid column after the correction",
                        base_dir),
-                f"Plane thickness per column of {_fmt(th.get('cell_m'), 1, 'm')} cells (the largest over its planar "
+                f"Plane thickness per column of {_fmt(th.get('cell_m'), 1, 'm')} cells (the median over its planar "
                 f"cells), left before, right after; light yellow 0 to dark red {vmax} and more; grey: no planar "
                 "cell."))
     if cards:

@@ -177,9 +177,10 @@ def _shift(before: CellMoments, after: CellMoments) -> int:
 
 def column_map(cells: NDArray[np.int64], thickness_m: FloatArray, i0: int, j1: int, width: int,
                height: int) -> FloatArray:
-    """(height, width) map of the largest thickness [m] of the planar cells in each vertical column
-    (NaN where none; the largest, so that one doubled wall is not hidden by a crisp floor and
-    ceiling); column (i, j) goes to row ``j1 - j``, column ``i - i0`` (north up)."""
+    """(height, width) map of the median thickness [m] of the planar cells in each vertical column
+    (NaN where none; the median, not the largest: a cube that holds one face of a wall and a little
+    of the other is thick before and after, and would mark every wall); column (i, j) goes to row
+    ``j1 - j``, column ``i - i0`` (north up)."""
     out = np.full((height, width), np.nan)
     if len(cells) == 0:
         return out
@@ -187,7 +188,9 @@ def column_map(cells: NDArray[np.int64], thickness_m: FloatArray, i0: int, j1: i
     ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
     flat = row[ok] * width + col[ok]
     values = thickness_m[ok]
-    largest = np.full(width * height, -np.inf)
-    np.maximum.at(largest, flat, values)
-    out.reshape(-1)[np.isfinite(largest)] = largest[np.isfinite(largest)]
+    order = np.lexsort((values, flat))
+    flat, values = flat[order], values[order]
+    starts = np.flatnonzero(np.r_[True, flat[1:] != flat[:-1]])
+    ends = np.r_[starts[1:], len(flat)]
+    out.reshape(-1)[flat[starts]] = [np.median(values[a:b]) for a, b in zip(starts, ends, strict=True)]
     return out
