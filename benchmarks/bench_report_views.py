@@ -42,7 +42,9 @@ def run_process(trajectory: str, cloud: str, out: Path, views: bool) -> dict:
         raise SystemExit(f"kinreg process failed:\n{done.stderr[-3000:]}")
     wall = time.perf_counter() - start
     report = json.loads((out / "report.json").read_text())
-    return {"wall_s": wall, "timings_s": report["timings_s"], "cloud": report.get("cloud"),
+    views = out / "figures" / "cloud.json"
+    seconds = json.loads(views.read_text())["seconds"] if views.exists() else None
+    return {"wall_s": wall, "timings_s": report["timings_s"], "cloud": report.get("cloud"), "seconds": seconds,
             "crs": report.get("crs"), "report_html_bytes": (out / "report.html").stat().st_size,
             "n_points": report["inputs"].get("n_points")}
 
@@ -60,7 +62,7 @@ def main() -> None:
             label = args.label[k] if k < len(args.label) else f"{trajectory} {cloud}"
             without = run_process(trajectory, cloud, Path(tmp) / f"off{k}", views=False)
             with_views = run_process(trajectory, cloud, Path(tmp) / f"on{k}", views=True)
-            seconds = with_views["cloud"]["seconds"]
+            seconds = with_views["seconds"]
             own = seconds["gather"] + seconds["figures"]
             process_s = sum(without["timings_s"].values())
             entry = {

@@ -294,3 +294,22 @@ def test_column_map_takes_the_median_per_column():
     assert grid[1, 0] == pytest.approx(0.002)  # j = 0 is the bottom row
     assert grid[0, 1] == pytest.approx(0.004)
     assert np.isnan(grid[0, 0]) and np.isnan(grid[1, 1])
+
+
+def test_a_tiny_cloud_still_gets_its_images(tmp_path):
+    rng = np.random.default_rng(9)
+    xyz = rng.random((500, 3)) * [0.3, 0.2, 2.0]  # 30 cm x 20 cm: a raster of a few dozen pixels
+    views = CloudViews(ReportConfig(section_heights_m=(1.0,)), xyz.min(0), xyz.max(0), 0.0, 1.0)
+    views.add(xyz, xyz, np.linspace(0, 1, 500))
+    result = views.finish(tmp_path)
+    image = decode_png((tmp_path / result["cloud"]["sections"][0]["images"]["before"]).read_bytes())
+    assert image.shape[1] == views.grid.width
+    assert "seconds" not in result["cloud"]  # only in figures/cloud.json: report.json is the same on --resume
+    assert set(json.loads((tmp_path / "figures" / "cloud.json").read_text())["seconds"]) == {"gather", "figures"}
+
+
+def test_views_off_write_nothing(tmp_path):
+    views = CloudViews(ReportConfig(cloud_views=False), np.zeros(3), np.ones(3), 0.0, 1.0)
+    views.add(np.zeros((10, 3)), np.zeros((10, 3)), np.zeros(10))
+    assert views.finish(tmp_path) == {"crs": {}}
+    assert not (tmp_path / "figures").exists()

@@ -16,8 +16,10 @@ keeps only rasters and per-cell moments (bounded memory, no extra pass over the 
   static cloud's local planes before and after (:mod:`kinreg.report.deviations`);
 - ``crs``: the coordinate reference system of the input cloud (:mod:`kinreg.report.crs`).
 
-The same entries are kept in ``DIR/figures/cloud.json``: a resumed run whose corrected cloud is
-still current (not written again) shows them from there.
+The same entries are kept in ``DIR/figures/cloud.json``, with the seconds the views took
+(``seconds``: ``gather`` while corrected.laz is written, ``figures`` in :meth:`CloudViews.finish`;
+not in report.json, which holds only what does not depend on how the run got there): a resumed
+run whose corrected cloud is still current (not written again) shows them from there.
 """
 
 from __future__ import annotations
@@ -135,10 +137,14 @@ class CloudViews:
         ``report.json``. Without points (the corrected cloud was current and not written again),
         the entries of the previous run in ``figures/cloud.json``, if any."""
         figures = Path(out_dir) / FIGURES_DIR
+        if not self.config.cloud_views:
+            return {"crs": self.crs}
         if self.n_points == 0:
             return _previous(figures, self.crs)
         start = time.perf_counter()
         figures.mkdir(parents=True, exist_ok=True)
+        for old in figures.glob("*.png"):  # of an earlier run in this folder (other heights, other runs)
+            old.unlink()
         sections = []
         for k, z in enumerate(self.heights or []):
             entry: dict[str, Any] = {"z_m": z, "band_m": self.config.section_band_m, "pixel_m": self.grid.pixel_m,
@@ -159,17 +165,17 @@ class CloudViews:
             "heights": "automatic" if self.automatic else "configured",
             "sections": sections,
             "thickness": self._thickness(figures),
-            "seconds": self.seconds,
         }
         if self.vertical is not None:
             cloud["vertical_section"] = self._vertical(figures)
         if self.deviations is not None:  # the kinematic noise: the corrected cloud's median plane thickness
             noise = cloud["thickness"].get("median_after_mm")
             cloud["static_deviations"] = self.deviations.figures(noise if noise and math.isfinite(noise) else 5.0)
-        self.seconds["figures"] = time.perf_counter() - start
         result = {"cloud": cloud, "crs": self.crs}
+        self.seconds["figures"] = time.perf_counter() - start
+        # The seconds only here (report.json holds what does not depend on how the run got there).
         with atomic_path(figures / SUMMARY_NAME, overwrite=True) as tmp:
-            tmp.write_text(json.dumps(_clean(result), indent=1) + "\n", encoding="utf-8")
+            tmp.write_text(json.dumps(_clean({**result, "seconds": self.seconds}), indent=1) + "\n", encoding="utf-8")
         return result
 
     def _inset(self, figures: Path, k: int, n: int, place: tuple[float, float, float]) -> dict[str, Any]:

@@ -175,11 +175,14 @@ def draw_colour_bar(image: Image, left: str, right: str, heat: bool = False) -> 
     h, w = image.shape[:2]
     scale = font_scale(image)
     length = max(w // 5, text_size(left, scale)[0] + text_size(right, scale)[0] + 4 * scale)
+    length = min(length, w - 8 * scale)  # a narrow image: as wide as it allows
+    if length < 2:
+        return
     x0, y1 = w - 4 * scale - length, h - 4 * scale
     bar_h = 3 * scale
     fill_rect(image, x0 - scale, y1 - bar_h - 11 * scale, w - 3 * scale, y1 + scale, WHITE)
     colours = colour_map(np.linspace(0.0, 1.0, length), heat=heat)
-    image[max(y1 - bar_h, 0):y1, x0:x0 + length] = colours[None, :, :]
+    image[max(y1 - bar_h, 0):max(y1, 0), x0:x0 + length] = colours[None, :, :]
     draw_text(image, left, x0, y1 - bar_h - 9 * scale, scale, box=False)
     tw, _ = text_size(right, scale)
     draw_text(image, right, x0 + length - tw, y1 - bar_h - 9 * scale, scale, box=False)
