@@ -313,3 +313,40 @@ def test_views_off_write_nothing(tmp_path):
     views.add(np.zeros((10, 3)), np.zeros((10, 3)), np.zeros(10))
     assert views.finish(tmp_path) == {"crs": {}}
     assert not (tmp_path / "figures").exists()
+
+
+def test_crs_named_by_pyproj_where_present(monkeypatch):
+    """The pyproj branch, with a stand-in module (pyproj is an optional extra, absent in CI)."""
+    import sys
+    import types
+
+    class CRSError(Exception):
+        pass
+
+    class FakeCRS:
+        def __init__(self, name: str, epsg: int | None) -> None:
+            self.name, self._epsg = name, epsg
+
+        def to_epsg(self):
+            return self._epsg
+
+        @staticmethod
+        def from_wkt(wkt: str):
+            if "broken" in wkt:
+                raise CRSError("bad WKT")
+            return FakeCRS("resolved by PROJ", 25832)
+
+        @staticmethod
+        def from_epsg(code: int):
+            return FakeCRS(f"EPSG {code} by PROJ", code)
+
+    fake = types.ModuleType("pyproj")
+    fake.CRS = FakeCRS  # type: ignore[attr-defined]
+    fake.exceptions = types.SimpleNamespace(CRSError=CRSError)  # type: ignore[attr-defined]
+    fake.__version__ = "9.9"  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "pyproj", fake)
+    entry = describe_crs(LasCrs(wkt='PROJCS["x",AUTHORITY["EPSG","1234"]]'))
+    assert (entry["name"], entry["epsg"], entry["resolved_by"]) == ("resolved by PROJ", 25832, "pyproj 9.9")
+    assert describe_crs(LasCrs(geo_keys={3072: 32632}))["name"] == "EPSG 32632 by PROJ"
+    broken = describe_crs(LasCrs(wkt='PROJCS["broken",AUTHORITY["EPSG","1234"]]'))
+    assert (broken["name"], broken["epsg"], broken["resolved_by"]) == ("broken", 1234, "text")

@@ -134,7 +134,8 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
         after = _image(images.get("after"), f"Horizontal section {k + 1} at z = {z} (band {band}) after the "
                        "drift correction, points coloured by time", base_dir)
         caption = (f"Section {k + 1}: z = {z} \u00b1 {_fmt((section.get('band_m') or 0) / 2, 2, 'm')} "
-                   f"({cloud.get('heights', DASH)} height), left before, right after the correction; "
+                   f"({cloud.get('heights', DASH)} height), before (left, or above on a narrow screen) and after "
+                   "the correction; "
                    f"{_count(section.get('n_points_before'))} / {_count(section.get('n_points_after'))} points, "
                    f"pixel {_fmt((section.get('pixel_m') or 0) * 100, 1, 'cm')}. " + legend)
         parts.append(_pair(before, after, caption))
@@ -149,7 +150,7 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                 _image(pictures.get("after"), f"Inset {n} of section {k + 1} at {where}, after the correction",
                        base_dir),
                 f"Inset {n} (red box {n}): {_fmt(inset.get('size_m'), 0, 'm')} square at {where}; mean horizontal "
-                f"correction of its points {_fmt(inset.get('correction_mm'), 1, 'mm')}. Left before, right after."))
+                f"correction of its points {_fmt(inset.get('correction_mm'), 1, 'mm')}. Before left, after right."))
         if figures:
             parts.append(_tag("div", "".join(figures), class_="insets"))
     vertical = cloud.get("vertical_section")
@@ -165,7 +166,7 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
             f"Vertical section along the longest straight stretch of the trajectory, {where}, "
             f"{_fmt(vertical.get('length_m'), 1, 'm')} long, band {_fmt(vertical.get('band_m'), 2, 'm')}; "
             "horizontal axis: distance along the line, vertical: height (the scale bar holds for both). "
-            "Left before, right after."))
+            "Before left (or above), after right (or below)."))
     cards = static_deviations(cloud)
     th = cloud.get("thickness")
     if isinstance(th, dict):
@@ -196,7 +197,8 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                 _image(images.get("after"), "Map of the plane thickness per grid column after the correction",
                        base_dir),
                 f"Plane thickness per column of {_fmt(th.get('cell_m'), 1, 'm')} cells (the median over its planar "
-                f"cells), left before, right after; light yellow 0 to dark red {vmax} and more; grey: no planar "
+                f"cells), before left (or above), after right (or below); light yellow 0 to dark red {vmax} and "
+                "more; grey: no planar "
                 "cell."))
     if cards:
         parts.append(cards)
