@@ -246,6 +246,31 @@ class DiscontinuityConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ReportConfig:
+    """``[report]``: what ``report.html`` shows of the cloud (:mod:`kinreg.report.cloud_views`),
+    gathered while ``corrected.laz`` is written."""
+
+    cloud_views: bool = True  # sections and the plane-thickness map; false skips them
+    # Heights (z in the cloud's frame, m) of the horizontal sections; empty: one height chosen
+    # 1.0-1.5 m above the lowest floor of the first chunk of points.
+    section_heights_m: tuple[float, ...] = ()
+    section_band_m: float = 0.10  # thickness of the slab around each height
+    section_pixel_m: float = 0.02  # raster resolution, coarser where the cloud is wider than ...
+    section_max_px: int = 2000  # ... this many pixels
+    thickness_cell_m: float = 1.0  # cube of the plane-thickness map (absolute grid)
+    thickness_stride: int = 1  # every n-th point enters the thickness map (cheaper on big clouds)
+
+    def __post_init__(self) -> None:
+        heights = self.section_heights_m
+        if not isinstance(heights, list | tuple) or any(isinstance(h, bool) or not isinstance(h, int | float)
+                                                        for h in heights):
+            raise ConfigError(f"[report] section_heights_m: expected a list of numbers, got {heights!r}")
+        object.__setattr__(self, "section_heights_m", tuple(float(h) for h in heights))
+        if self.section_max_px < 16 or self.thickness_stride < 1:
+            raise ConfigError("[report] section_max_px must be at least 16 and thickness_stride at least 1")
+
+
+@dataclasses.dataclass(frozen=True)
 class KinregConfig:
     input: InputConfig = dataclasses.field(default_factory=InputConfig)
     slicing: SlicingConfig = dataclasses.field(default_factory=SlicingConfig)
@@ -257,6 +282,7 @@ class KinregConfig:
     static: StaticConfig = dataclasses.field(default_factory=StaticConfig)
     reference: ReferenceConfig = dataclasses.field(default_factory=ReferenceConfig)
     jumps: DiscontinuityConfig = dataclasses.field(default_factory=DiscontinuityConfig)
+    report: ReportConfig = dataclasses.field(default_factory=ReportConfig)
 
 
 C = TypeVar("C")

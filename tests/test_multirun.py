@@ -144,7 +144,8 @@ def test_corrected_cloud_and_trajectory_per_run(project: Path) -> None:
     out = project / "out"
     assert sorted(p.name for p in out.iterdir()) == sorted([
         ".kinreg-cache", "config.toml", "corrected_r1.laz", "corrected_r2.laz", "links.csv", "report.html",
-        "report.json", "sequence.e57", "stations.csv", "trajectory_corrected_r1.txt", "trajectory_corrected_r2.txt"])
+        "report.json", "sequence.e57", "stations.csv", "trajectory_corrected_r1.txt", "trajectory_corrected_r2.txt",
+        "figures"])
     for k in (1, 2):
         source = laspy.read(project / f"run{k}" / "run_cloud.laz")
         corrected = laspy.read(out / f"corrected_r{k}.laz")
@@ -195,7 +196,7 @@ def test_resume_reuses_each_run_and_one_run_replaces_the_per_run_outputs(project
     single = ProcessInputs(project / "run1" / "run_trajectory.txt", project / "run1" / "run_cloud.laz")
     process(single, out, KinregConfig(), overwrite=True)
     assert not list(out.glob("*_r[12].*"))
-    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, ".kinreg-cache"}
+    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, ".kinreg-cache", "figures"}
     assert stations(out)[0]["station"] == "qs_00000"
 
 

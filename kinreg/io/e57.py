@@ -640,8 +640,9 @@ class E57SequenceWriter:
     --overwrite"), the folder is missing or not writable, or writing fails.
     """
 
-    def __init__(self, path: str | Path, overwrite: bool = False) -> None:
+    def __init__(self, path: str | Path, overwrite: bool = False, coordinate_metadata: str = "") -> None:
         self.path = Path(path)
+        self.coordinate_metadata = coordinate_metadata  # the CRS (WKT) of the object frame; "" if unknown
         if self.path.is_dir():
             raise OutputError("is a folder; expected an .e57 file name", self.path)
         if self.path.exists() and not overwrite:
@@ -671,7 +672,7 @@ class E57SequenceWriter:
         library = f"kinreg {__version__} / {libe57.E57_LIBRARY_ID}"
         root.set("e57LibraryVersion", libe57.StringNode(imf, library))
         # No creationDateTime: it is optional, and leaving out the wall clock keeps reruns identical.
-        root.set("coordinateMetadata", libe57.StringNode(imf, ""))
+        root.set("coordinateMetadata", libe57.StringNode(imf, self.coordinate_metadata))
         root.set(f"{KINREG_E57_PREFIX}:schemaVersion", libe57.IntegerNode(imf, E57_SCHEMA_VERSION))
         self._data3d = libe57.VectorNode(imf, True)
         root.set("data3D", self._data3d)
@@ -860,8 +861,11 @@ def write_e57_sequence(
     scans: Iterable[Scan],
     overwrite: bool = False,
     progress: Progress | None = None,
+    coordinate_metadata: str = "",
 ) -> int:
-    """Write scans (points in their own frames, poses ``T_obj_scan``) as one E57 file.
+    """Write scans (points in their own frames, poses ``T_obj_scan``) as one E57 file;
+    ``coordinate_metadata`` (the CRS of the object frame, e.g. its WKT) goes into the root's
+    ``coordinateMetadata``.
 
     ``scans`` is consumed one at a time, so a generator keeps memory at one scan. Returns the
     number of scans written. Atomic: on any failure nothing is left at ``path``. Raises
@@ -870,7 +874,7 @@ def write_e57_sequence(
     progress = progress or NullProgress()
     progress.start("write E57", total=len(scans) if isinstance(scans, Sized) else None, unit="scans")
     try:
-        with E57SequenceWriter(path, overwrite=overwrite) as writer:
+        with E57SequenceWriter(path, overwrite=overwrite, coordinate_metadata=coordinate_metadata) as writer:
             for scan in scans:
                 writer.add_scan(scan)
                 progress.advance(1)

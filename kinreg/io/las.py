@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import struct
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import laspy
@@ -184,3 +185,37 @@ def _describe(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     return text[0] if text else type(e).__name__
 
+
+
+WKT_RECORD_ID, GEOKEYS_RECORD_ID = 2112, 34735  # LASF_Projection records (LAS 1.4 R15, section 2.5)
+
+
+@dataclass(frozen=True)
+class LasCrs:
+    """The coordinate reference system a LAS/LAZ header declares: the OGC WKT of its
+    ``LASF_Projection`` (E)VLR 2112, and the GeoTIFF keys (key id -> value) of record 34735."""
+
+    wkt: str = ""
+    geo_keys: dict[int, int] = field(default_factory=dict)
+
+
+def read_las_crs(path: str | Path) -> LasCrs:
+    """The CRS records of a LAS/LAZ file's VLRs and EVLRs (empty when it has none); raises
+    :class:`CloudError` when the file cannot be opened."""
+    path = Path(path)
+    try:
+        with laspy.open(path) as reader:
+            records = list(reader.header.vlrs) + list(reader.header.evlrs or [])
+    except _DECODE_ERRORS as e:
+        raise CloudError(f"cannot open as LAS/LAZ: {_describe(e)}", path) from None
+    wkt, keys = "", {}
+    for record in records:
+        if getattr(record, "user_id", "") != "LASF_Projection":
+            continue
+        if record.record_id == WKT_RECORD_ID and not wkt:
+            text = getattr(record, "string", "")
+            wkt = (text.decode("utf-8", "replace") if isinstance(text, bytes) else str(text)).strip("\x00 \n")
+        elif record.record_id == GEOKEYS_RECORD_ID:
+            keys = {int(k.id): int(k.value_offset) for k in getattr(record, "geo_keys", [])
+                    if int(k.tiff_tag_location) == 0}  # values stored in the key itself
+    return LasCrs(wkt, keys)

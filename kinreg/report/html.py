@@ -16,12 +16,14 @@ old reports should know about.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
+from kinreg.report.cloud_html import cloud_section, thickness_figure
 from kinreg.report.plots import _plot_correction, _plot_histograms, _plot_links, _plot_plan, _plot_sigma_time, _rows
 from kinreg.report.text import DASH, _count, _duration, _esc, _fmt, _get, _number, _numbers, _plain, _tag
 
-REPORT_HTML_VERSION = 1
+REPORT_HTML_VERSION = 2  # 2: the cloud (sections, plane thickness), the CRS, phone and print layout
 
 
 STATION_COLUMNS = ("station", "t", "t_start", "t_end", "x", "y", "z", "qw", "qx", "qy", "qz", "sx_mm",
@@ -50,19 +52,19 @@ h2{font-size:1.15em;margin:1.4em 0 .5em;border-bottom:1px solid #ddd;padding-bot
 .verdict.pass{background:#e8f5e9;border-color:#2e7d32}
 .verdict.warn{background:#fff8e1;border-color:#f9a825}
 .verdict.fail{background:#ffebee;border-color:#c62828}
-.cards{display:grid;grid-template-columns:repeat(auto-fit,minmax(420px,1fr));gap:16px;align-items:start}
+.cards{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(420px,100%),1fr));gap:16px;align-items:start}
 .card h3{margin:.1em 0 .4em;font-size:1.05em}
 .card td:first-child,.figures td{white-space:nowrap}
 .inputs td+td{word-break:break-all}
 .figures td{font-size:1.1em}
-.card{background:#fff;border:1px solid #e0e0e0;border-radius:6px;padding:10px 14px}
+.card{background:#fff;border:1px solid #e0e0e0;border-radius:6px;padding:10px 14px;min-width:0;overflow-x:auto}
 table{border-collapse:collapse;font-size:.92em}
 td,th{padding:3px 10px;text-align:left;vertical-align:top}
 td.num,th.num{text-align:right;font-variant-numeric:tabular-nums}
 tr+tr td{border-top:1px solid #eee}
 th{color:#555;font-weight:600}
 .bar{display:inline-block;height:9px;background:#1f6fb4;border-radius:2px;vertical-align:middle}
-.plots{display:grid;grid-template-columns:repeat(auto-fit,minmax(560px,1fr));gap:16px}
+.plots{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(560px,100%),1fr));gap:16px}
 figure{margin:0;background:#fff;border:1px solid #e0e0e0;border-radius:6px;padding:8px}
 figcaption{color:#555;font-size:.85em;padding:4px 6px}
 svg.plot{width:100%;height:auto;display:block;font-family:inherit}
@@ -77,6 +79,18 @@ summary{cursor:pointer;font-weight:600}
 .stations tr.fixed td{background:#eef4fb}
 pre{background:#fafafa;border:1px solid #eee;padding:10px;overflow-x:auto;font-size:.85em}
 footer{color:#888;font-size:.8em;margin-top:2em}
+figure{margin-bottom:16px;min-width:0}
+.pair{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(420px,100%),1fr));gap:8px}
+.insets{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(400px,100%),1fr));gap:12px}
+.insets .pair{grid-template-columns:1fr 1fr}
+img.cloud{width:100%;height:auto;display:block;border:1px solid #eee;image-rendering:auto}
+@media (max-width:640px){main{padding:10px 8px 30px}.card{padding:8px}td,th{padding:3px 5px}
+.figures td{white-space:normal;font-size:1em}.card td:first-child{white-space:normal}}
+@page{size:A4;margin:12mm}
+@media print{body{background:#fff;font-size:10pt}main{max-width:none;padding:0}
+.cards,.plots{grid-template-columns:1fr 1fr}.pair{grid-template-columns:1fr 1fr}
+.card,figure,details,.verdict{break-inside:avoid}.scroll{max-height:none;overflow:visible}
+.card{overflow:visible}.stations{font-size:7pt}}
 """
 
 
@@ -108,8 +122,16 @@ def _section_inputs(report: dict[str, Any]) -> str:
         ("quasi-static scans", _count(slicing.get("n_scans"))),
         ("skipped windows", _count(len(slicing.get("skipped_windows") or []))),
         ("points outside trajectory", _count(slicing.get("n_points_outside_trajectory"))),
+        ("coordinate system", _crs_text(_get(report, "crs", default={}))),
     ]
     return _tag("div", "<h3>Inputs</h3>" + _table(rows, numeric_from=9, cls="inputs"), class_="card")
+
+
+def _crs_text(crs: Any) -> str:
+    if not isinstance(crs, dict) or not crs:
+        return "not declared"
+    epsg = crs.get("epsg")
+    return f"{crs.get('name') or DASH}" + (f" (EPSG:{epsg})" if epsg else "")
 
 
 def _verdict(report: dict[str, Any]) -> str:
@@ -145,6 +167,8 @@ def _key_figures(report: dict[str, Any]) -> str:
         figure("correction", corr, "mean", "mm"),
         figure("correction (rotation)", corr_rot, "mean", "mdeg"),
     ]
+    if _get(report, "cloud", "thickness", default=None):
+        rows.append(thickness_figure(report))
     table = _table(rows, numeric_from=1, cls="figures")
     note = ("<p class='sub'>Gaps: station positions before vs after networking, after a rigid 3D "
             f"transformation (rotation {_esc(_fmt(ba.get('rotation_mdeg'), 1, 'mdeg'))}). Stations: "
@@ -261,11 +285,13 @@ def _plots(report: dict[str, Any]) -> str:
 # The page
 # --------------------------------------------------------------------------------------------
 
-def render_html(report: dict[str, Any]) -> str:
+def render_html(report: dict[str, Any], base_dir: str | Path | None = None) -> str:
     """One self-contained HTML page (inline CSS and SVG, no network) for a ``report.json`` dict.
 
     ``report`` is the dictionary of :func:`kinreg.report.json.build_report` or its JSON; missing keys
     and NaN/None values are shown as a dash or an empty plot, never raised. Returns the page text.
+    ``base_dir``: the folder the image paths of ``report["cloud"]`` are relative to (the output
+    folder); their PNGs are embedded.
     """
     report = _plain(report) if isinstance(report, dict) else {}
     inputs = _get(report, "inputs", default={})
@@ -291,6 +317,7 @@ def render_html(report: dict[str, Any]) -> str:
         _rejected_table(report),
         _tag("h2", "Plots"),
         _plots(report),
+        cloud_section(report, None if base_dir is None else Path(base_dir)),
         _tag("h2", "Stations and configuration"),
         _station_table(report),
         _tag("details", _tag("summary", "Resolved configuration (config.toml)") + _tag("pre", _esc(config)))

@@ -77,6 +77,7 @@ def build_report(
     alpha: float,
     timings_s: dict[str, float],
     trajectory_plot: dict[str, list[float]],
+    cloud_views: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The content of ``report.json``: ``jumps`` and ``corrections`` one per run, ``timings_s``
     the stage timings (the dictionary itself: a stage timed after this call still shows)."""
@@ -156,6 +157,7 @@ def build_report(
             "accuracy_m": references.accuracy_m, "n_ties": len(network.datum.ties),
             "planes": as_built(network.datum.ties, result.poses, planes, references)}}),
         "stage_cache": stage_cache,
+        **(cloud_views or {}),  # "cloud" and "crs" (kinreg.report.cloud_views)
     }
 
 

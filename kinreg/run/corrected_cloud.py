@@ -4,14 +4,21 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
 from kinreg.errors import CloudError
 from kinreg.estimate.correction import DriftCorrection
-from kinreg.geometry import Pose
+from kinreg.geometry import FloatArray, Pose
 from kinreg.io.atomic import atomic_path
 from kinreg.progress import NullProgress, Progress
+
+
+class PointObserver(Protocol):
+    """Sees every chunk as it is written (e.g. :class:`kinreg.report.cloud_views.CloudViews`)."""
+
+    def add(self, xyz_before: FloatArray, xyz_after: FloatArray, stamps_s: FloatArray) -> None: ...
 
 
 def write_corrected_las(
@@ -23,6 +30,7 @@ def write_corrected_las(
     progress: Progress | None = None,
     T_obj_cloud: Pose | None = None,
     time_offset_s: float = 0.0,
+    observer: PointObserver | None = None,
 ) -> int:
     """Stream a LAS/LAZ file, correct every point by its time, write it with the same header,
     point format, order and attributes (only X, Y, Z change). Returns the number of points.
@@ -33,6 +41,11 @@ def write_corrected_las(
     coordinates keep their range and the scale its resolution. ``time_offset_s`` puts the point
     times into the trajectory's time base (the stored times are kept). Points without a finite
     time are left out (they have no pose).
+
+    The header is the input's: VLRs (the CRS as WKT or GeoTIFF keys among them), EVLRs (LAS 1.4),
+    point format, scales, system identifier, software, date, GUID; laspy updates the point counts
+    and bounds. ``observer`` (optional) gets each chunk's points before and after the correction
+    (object frame) and their times, to gather the report's views of the cloud in the same pass.
     """
     import copy
 
@@ -66,6 +79,8 @@ def write_corrected_las(
                         xyz = T_obj_cloud.apply(xyz)
                         points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
                     fixed = correction.apply_to_points(xyz, t)
+                    if observer is not None:
+                        observer.add(xyz, fixed, t)
                     try:
                         points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
                     except OverflowError:
@@ -74,6 +89,8 @@ def write_corrected_las(
                     writer.write_points(points)
                     n += len(points)
                     progress.advance(len(points))
+                if header.evlrs and header.version.minor >= 4:  # laspy's writer leaves them out
+                    writer.write_evlrs(header.evlrs)
             progress.finish()
     return n
 

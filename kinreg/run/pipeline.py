@@ -38,6 +38,7 @@ from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
 from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
 from kinreg.progress import NullProgress, Progress
+from kinreg.report.cloud_views import cloud_views_for_runs
 from kinreg.report.html import render_html
 from kinreg.report.json import build_failure_report, build_report, write_report_json
 from kinreg.report.tables import (
@@ -251,10 +252,12 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
                        for k in range(len(runs))]
         plan = plan_large_outputs(folder, out, outputs, runs, sliced, corrections, adjusted.result.poses, config,
                                   references)
+        views = cloud_views_for_runs(config.report, [r.cloud for r in runs], kinematic.trajectories, references,
+                                     inputs.static)
         corrected = write_corrected_runs(out, runs, kinematic.trajectories, corrections, plan, folder, config,
-                                         references, progress)
+                                         references, progress, views)
         clock.lap("corrected cloud")
-        write_sequence(out, sliced, adjusted.result.poses, plan, folder, progress)
+        write_sequence(out, sliced, adjusted.result.poses, plan, folder, progress, views.crs.get("wkt", ""))
         clock.lap("sequence E57")
     report = build_report(
         inputs=inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference),
@@ -264,7 +267,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
                                                            est.smear_m, est.first_window_s),
         corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
         alpha=config.block.alpha, timings_s=clock.timings_s,
-        trajectory_plot=trajectory_plot(kinematic.trajectories, corrected))
+        trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
+        cloud_views=views.finish(out))  # "cloud" (sections, plane thickness; PNGs in figures/) and "crs"
     write_tables(out, report, adjusted.network, adjusted.result, planes)
     clock.lap("reports")
     write_report_json(out / "report.json", report)  # last: it marks a finished run
@@ -362,7 +366,7 @@ def write_tables(out: Path, report: dict[str, Any], network: Network, result: Bl
     write_text(out / "stations.csv", format_stations_csv(rows))
     write_text(out / "links.csv", format_links_csv(links_table(network.links, result)))
     write_text(out / "config.toml", report["config_toml"])
-    write_text(out / "report.html", render_html(report))
+    write_text(out / "report.html", render_html(report, base_dir=out))
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,7 @@ from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
 from kinreg.progress import NullProgress, Progress
 from kinreg.run.codecs import links_from_arrays, links_to_arrays, scan_planes_from_arrays, scan_planes_to_arrays
-from kinreg.run.corrected_cloud import write_corrected_las
+from kinreg.run.corrected_cloud import PointObserver, write_corrected_las
 from kinreg.run.executor import ExecutorContext, in_process, parallel_map
 from kinreg.run.output_folder import CachedSlices, RunCache, content_parts, dataclass_parts, remove_outputs
 from kinreg.run.runs import RunInputs, adjusted_scans, label_run, run_output_names
@@ -369,7 +369,7 @@ def plan_large_outputs(run: RunCache, out: Path, outputs: tuple[str, ...], runs:
 def write_corrected_runs(out: Path, runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
                          corrections: Sequence[DriftCorrection], plan: LargeOutputs, run: RunCache,
                          config: KinregConfig, references: ReferencePlanes | None,
-                         progress: Progress) -> list[Trajectory]:
+                         progress: Progress, views: PointObserver | None = None) -> list[Trajectory]:
     """Each run's corrected trajectory and (unless still current) corrected cloud; returns the
     corrected trajectories."""
     T_obj_cloud = None if references is None else references.T_ref_traj
@@ -381,7 +381,7 @@ def write_corrected_runs(out: Path, runs: Sequence[RunInputs], trajectories: Seq
         if cloud_name not in plan.current:
             write_corrected_las(r.cloud, out / cloud_name, correction, config.input.chunk_points,
                                 overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud,
-                                time_offset_s=config.input.cloud_time_offset_s)
+                                time_offset_s=config.input.cloud_time_offset_s, observer=views)
             run.record_output(cloud_name, plan.keys[cloud_name])
         run.count("corrected cloud", reused=int(cloud_name in plan.current),
                   computed=int(cloud_name not in plan.current))
@@ -398,7 +398,7 @@ def counted(scans: Iterator[Scan], progress: Progress, stage: str, total: int) -
 
 
 def write_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan: LargeOutputs, run: RunCache,
-                   progress: Progress) -> None:
+                   progress: Progress, crs_wkt: str = "") -> None:
     """``sequence.e57``: the quasi-static scans of every run with their adjusted poses (unless still current)."""
     from kinreg.io.e57 import write_e57_sequence
 
@@ -406,6 +406,6 @@ def write_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan:
     if not done:
         n_scans = sum(len(slices) for slices in sliced)
         write_e57_sequence(out / "sequence.e57", counted(adjusted_scans(sliced, poses), progress, "write E57", n_scans),
-                           overwrite=True)
+                           overwrite=True, coordinate_metadata=crs_wkt)
         run.record_output("sequence.e57", plan.keys["sequence.e57"])
     run.count("sequence E57", reused=int(done), computed=int(not done))

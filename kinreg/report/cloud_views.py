@@ -1,0 +1,328 @@
+"""What the report shows of the point cloud itself, gathered while ``corrected.laz`` is written.
+
+:class:`CloudViews` receives every chunk of points twice, as read and as corrected (``add``), and
+keeps only rasters and per-cell moments (bounded memory, no extra pass over the cloud). At the end,
+:meth:`CloudViews.finish` writes the PNG figures into ``DIR/figures/`` and returns the
+``report.json`` entries:
+
+- ``cloud.sections``: horizontal sections before and after, coloured by time
+  (:mod:`kinreg.report.sections`), at ``[report] section_heights_m`` or one height chosen from the
+  first chunk of points (:func:`~kinreg.report.sections.choose_heights`);
+- ``cloud.vertical_section``: a vertical section before and after along the longest straight
+  stretch of the (first run's) trajectory;
+- ``cloud.thickness``: the plane-thickness map and the median ratio after/before over the cells
+  planar in both (:mod:`kinreg.report.thickness`);
+- ``cloud.static_deviations`` (with ``--static``): signed distances of the kinematic points to the
+  static cloud's local planes before and after (:mod:`kinreg.report.deviations`);
+- ``crs``: the coordinate reference system of the input cloud (:mod:`kinreg.report.crs`).
+
+The same entries are kept in ``DIR/figures/cloud.json``, with the seconds the views took
+(``seconds``: ``gather`` while corrected.laz is written, ``figures`` in :meth:`CloudViews.finish`;
+not in report.json, which holds only what does not depend on how the run got there): a resumed
+run whose corrected cloud is still current (not written again) shows them from there.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kinreg.config import ReportConfig
+from kinreg.geometry import FloatArray
+from kinreg.io.atomic import atomic_path
+from kinreg.io.reference_planes import ReferencePlanes
+from kinreg.report.crs import describe_crs
+from kinreg.report.deviations import Deviations, StaticPlanes
+from kinreg.report.raster import (
+    WHITE,
+    Image,
+    colour_map,
+    draw_colour_bar,
+    draw_label,
+    draw_north_arrow,
+    draw_scale_bar,
+    encode_png,
+    font_scale,
+)
+from kinreg.report.sections import (
+    CorrectionMap,
+    Grid,
+    SectionRaster,
+    VerticalPlane,
+    choose_heights,
+    crop,
+    enlarge,
+    longest_straight_stretch,
+    render_time_image,
+)
+from kinreg.report.thickness import CellMoments, column_map, compare
+from kinreg.types import Trajectory
+
+log = logging.getLogger(__name__)
+
+FIGURES_DIR = "figures"
+SUMMARY_NAME = "cloud.json"
+INSETS, INSET_M = 3, 3.0  # zoomed windows of the first section where the correction is largest, their size
+MIN_CELL_POINTS = 50  # points of a planar cell (1 m cell at 5 mm noise: the thickness to ~10 %)
+
+
+class CloudViews:
+    """Sections and plane thickness of a cloud before and after its correction (see the module).
+
+    ``bounds_min``/``bounds_max``: the object-frame box of all points (the rasters cover it plus
+    half a metre); ``t0_s``/``t1_s``: the time range that colours run from; ``crs``: the CRS
+    entry of ``report.json`` (:func:`kinreg.report.crs.describe_crs`).
+    """
+
+    def __init__(self, config: ReportConfig, bounds_min: FloatArray, bounds_max: FloatArray, t0_s: float,
+                 t1_s: float, crs: dict[str, Any] | None = None, static_planes: StaticPlanes | None = None,
+                 vertical: VerticalPlane | None = None) -> None:
+        self.config = config
+        self.grid = Grid.covering(bounds_min, bounds_max, config.section_pixel_m, config.section_max_px)
+        self.t0_s, self.duration_s = float(t0_s), max(float(t1_s) - float(t0_s), 1e-9)
+        self.heights: list[float] | None = list(config.section_heights_m) or None
+        self.automatic = not config.section_heights_m
+        self.rasters: dict[tuple[float, str], SectionRaster] = {}
+        self.corrections = CorrectionMap(self.grid)  # of the first section's points
+        self.vertical = vertical
+        if vertical is not None:
+            lo = np.array([-1.0, float(bounds_min[2]) - 0.3])
+            hi = np.array([vertical.length_m + 1.0, float(bounds_max[2]) + 0.3])
+            self.vertical_grid = Grid.covering(lo, hi, config.section_pixel_m, config.section_max_px, margin_m=0.0)
+            self.vertical_rasters = {w: SectionRaster(self.vertical_grid) for w in ("before", "after")}
+        origin = np.asarray(bounds_min, dtype=np.float64) - 1.0  # corrected points may leave the input's box
+        extent = np.asarray(bounds_max, dtype=np.float64) + 1.0 - origin
+        self.moments = {which: CellMoments(origin, config.thickness_cell_m, extent) for which in ("before", "after")}
+        self.crs = crs or {}
+        self.deviations = None if static_planes is None else Deviations(static_planes)
+        self.n_points = 0
+        self.seconds = {"gather": 0.0, "figures": 0.0}  # in add (while corrected.laz is written), in finish
+
+    def add(self, xyz_before: FloatArray, xyz_after: FloatArray, stamps_s: FloatArray) -> None:
+        """One chunk: object-frame points (n, 3) as read and as corrected, their times (n,)."""
+        if not self.config.cloud_views or len(stamps_s) == 0:
+            return
+        start = time.perf_counter()
+        if self.heights is None:
+            self.heights = choose_heights(xyz_before[::7, 2], self.config.section_band_m)
+        time01 = ((np.asarray(stamps_s, dtype=np.float64) - self.t0_s) / self.duration_s).astype(np.float32)
+        half = 0.5 * self.config.section_band_m
+        for which, xyz in (("before", xyz_before), ("after", xyz_after)):
+            for k, z in enumerate(self.heights):
+                band = np.abs(xyz[:, 2] - z) <= half
+                raster = self.rasters.setdefault((z, which), SectionRaster(self.grid))
+                raster.add(xyz[band, :2], time01[band])
+                if k == 0 and which == "after":
+                    shift = xyz_after[band, :2] - xyz_before[band, :2]
+                    self.corrections.add(xyz_after[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
+            stride = self.config.thickness_stride
+            self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
+            if self.deviations is not None:
+                self.deviations.add(which, xyz)
+            if self.vertical is not None:
+                projected, inside = self.vertical.project(xyz)
+                self.vertical_rasters[which].add(projected, time01[inside])
+        self.n_points += len(stamps_s)
+        self.seconds["gather"] += time.perf_counter() - start
+
+    def finish(self, out_dir: Path) -> dict[str, Any]:
+        """Write the figures into ``out_dir/figures`` and return ``{"cloud": ..., "crs": ...}`` for
+        ``report.json``. Without points (the corrected cloud was current and not written again),
+        the entries of the previous run in ``figures/cloud.json``, if any."""
+        figures = Path(out_dir) / FIGURES_DIR
+        if not self.config.cloud_views:
+            return {"crs": self.crs}
+        if self.n_points == 0:
+            return _previous(figures, self.crs)
+        start = time.perf_counter()
+        figures.mkdir(parents=True, exist_ok=True)
+        for old in figures.glob("*.png"):  # of an earlier run in this folder (other heights, other runs)
+            old.unlink()
+        sections = []
+        for k, z in enumerate(self.heights or []):
+            entry: dict[str, Any] = {"z_m": z, "band_m": self.config.section_band_m, "pixel_m": self.grid.pixel_m,
+                                     "width_px": self.grid.width, "height_px": self.grid.height, "images": {}}
+            places = self.corrections.largest(INSETS) if k == 0 else []
+            for which in ("before", "after"):
+                raster = self.rasters[(z, which)]
+                name = f"section_{k + 1}_{which}.png"
+                image = raster.render(f"{which.upper()} z={z:.2f} m", self.duration_s, places, INSET_M)
+                _write_png(figures / name, image)
+                entry["images"][which] = f"{FIGURES_DIR}/{name}"
+                entry[f"n_points_{which}"] = raster.n_points
+            entry["insets"] = [self._inset(figures, k, n, place) for n, place in enumerate(places)]
+            sections.append(entry)
+        cloud: dict[str, Any] = {
+            "n_points": self.n_points,
+            "time_range_s": [self.t0_s, self.t0_s + self.duration_s],
+            "heights": "automatic" if self.automatic else "configured",
+            "sections": sections,
+            "thickness": self._thickness(figures),
+        }
+        if self.vertical is not None:
+            cloud["vertical_section"] = self._vertical(figures)
+        if self.deviations is not None:  # the kinematic noise: the corrected cloud's median plane thickness
+            noise = cloud["thickness"].get("median_after_mm")
+            cloud["static_deviations"] = self.deviations.figures(noise if noise and math.isfinite(noise) else 5.0)
+        result = {"cloud": cloud, "crs": self.crs}
+        self.seconds["figures"] = time.perf_counter() - start
+        # The seconds only here (report.json holds what does not depend on how the run got there).
+        with atomic_path(figures / SUMMARY_NAME, overwrite=True) as tmp:
+            tmp.write_text(json.dumps(_clean({**result, "seconds": self.seconds}), indent=1) + "\n", encoding="utf-8")
+        return result
+
+    def _inset(self, figures: Path, k: int, n: int, place: tuple[float, float, float]) -> dict[str, Any]:
+        x, y, shift_m = place
+        z = (self.heights or [])[k]
+        entry: dict[str, Any] = {"x_m": x, "y_m": y, "size_m": INSET_M, "correction_mm": shift_m * 1000.0,
+                                 "images": {}}
+        for which in ("before", "after"):
+            window = crop(self.rasters[(z, which)].mean_time(), self.grid, x, y, INSET_M)
+            big, factor = enlarge(window, 600)
+            image = render_time_image(big, self.grid.pixel_m / factor, f"{n + 1} {which.upper()}", self.duration_s)
+            name = f"section_{k + 1}_inset_{n + 1}_{which}.png"
+            _write_png(figures / name, image)
+            entry["images"][which] = f"{FIGURES_DIR}/{name}"
+        return entry
+
+    def _vertical(self, figures: Path) -> dict[str, Any]:
+        plane = self.vertical
+        assert plane is not None
+        entry: dict[str, Any] = {"start_xy": plane.start_xy.tolist(), "end_xy": plane.end_xy.tolist(),
+                                 "length_m": plane.length_m, "azimuth_deg": plane.azimuth_deg, "band_m": plane.band_m,
+                                 "pixel_m": self.vertical_grid.pixel_m, "images": {}}
+        for which, raster in self.vertical_rasters.items():
+            image = raster.render(f"{which.upper()} VERTICAL AZ {plane.azimuth_deg:.0f}", self.duration_s, north=False)
+            name = f"vertical_{which}.png"
+            _write_png(figures / name, image)
+            entry["images"][which] = f"{FIGURES_DIR}/{name}"
+            entry[f"n_points_{which}"] = raster.n_points
+        return entry
+
+    def _thickness(self, figures: Path) -> dict[str, Any]:
+        result = compare(self.moments["before"], self.moments["after"], MIN_CELL_POINTS)
+        entry: dict[str, Any] = dict(result.figures)
+        entry["thickness_stride"] = self.config.thickness_stride
+        cells = np.vstack([result.cells_before, result.cells_after])
+        if len(cells) == 0:
+            return entry
+        i0, j0 = (int(v) for v in cells[:, :2].min(axis=0))
+        i1, j1 = (int(v) for v in cells[:, :2].max(axis=0))
+        width, height = i1 - i0 + 1, j1 - j0 + 1
+        vmax = float(np.percentile(result.thickness_before_m, 95)) if len(result.thickness_before_m) else 0.01
+        vmax = max(vmax, 1e-3)
+        entry["map_max_mm"] = vmax * 1000.0
+        entry["images"] = {}
+        for which, c, t in (("before", result.cells_before, result.thickness_before_m),
+                            ("after", result.cells_after, result.thickness_after_m)):
+            grid = column_map(c, t, i0, j1, width, height)
+            image = _thickness_image(grid, self.config.thickness_cell_m, vmax, which)
+            name = f"thickness_{which}.png"
+            _write_png(figures / name, image)
+            entry["images"][which] = f"{FIGURES_DIR}/{name}"
+        return entry
+
+
+def _thickness_image(grid: FloatArray, cell_m: float, vmax_m: float, which: str) -> Image:
+    """The column map as an image: each cell a square of pixels, about 800 px wide."""
+    w = grid.shape[1]
+    px = int(max(2, min(40, 800 // max(w, 1))))
+    big = np.kron(np.nan_to_num(grid, nan=-1.0), np.ones((px, px)))
+    scale = font_scale(np.empty((big.shape[0], max(big.shape[1], 400), 0), dtype=np.uint8))
+    top, bottom, side = 24 * scale, 18 * scale, 4 * scale  # title and north arrow above, bars below
+    image = np.empty((big.shape[0] + top + bottom, max(big.shape[1] + 2 * side, 400), 3), dtype=np.uint8)
+    image[:] = WHITE
+    view = image[top:top + big.shape[0], side:side + big.shape[1]]
+    full = big >= 0
+    view[~full] = (235, 235, 235)
+    view[full] = colour_map(big[full] / vmax_m, heat=True)
+    draw_label(image, f"THICKNESS {which.upper()}")
+    draw_scale_bar(image, cell_m / px)
+    draw_north_arrow(image)
+    draw_colour_bar(image, "0", f"{vmax_m * 1000:.0f} mm", heat=True)
+    return image
+
+
+def _write_png(path: Path, image: Image) -> None:
+    with atomic_path(path, overwrite=True) as tmp:
+        tmp.write_bytes(encode_png(image))
+
+
+def _previous(figures: Path, crs: dict[str, Any]) -> dict[str, Any]:
+    try:
+        result = json.loads((figures / SUMMARY_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {"crs": crs}
+    if isinstance(result, dict) and isinstance(result.get("cloud"), dict):
+        return {"cloud": result["cloud"], "crs": crs}
+    return {"crs": crs}
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    if isinstance(value, np.generic):
+        return _clean(value.item())
+    return value
+
+
+def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajectories: Sequence[Trajectory],
+                         references: ReferencePlanes | None = None, static: Path | None = None) -> CloudViews:
+    """A :class:`CloudViews` over the header bounds of every cloud (mapped into the trajectories'
+    frame by the references' ``[initial_transform]``, as corrected.laz is) and the time range of
+    every trajectory; the CRS from the first cloud; with ``static`` (registered static scans, E57),
+    the static cloud's local planes for the kinematic-vs-static deviations."""
+    from kinreg.io.cloud import open_cloud
+    from kinreg.io.las import read_las_crs
+
+    T_obj_cloud = None if references is None else references.T_ref_traj
+    stamps_s = [t.stamps_s for t in trajectories]
+
+    lows, highs = [], []
+    for path in clouds:
+        with open_cloud(path, require_time=False) as cloud:
+            if cloud.info.bounds_min is None or cloud.info.bounds_max is None:
+                continue
+            lo, hi = np.asarray(cloud.info.bounds_min), np.asarray(cloud.info.bounds_max)
+        if T_obj_cloud is not None:
+            corners = np.array([[a, b, c] for a in (lo[0], hi[0]) for b in (lo[1], hi[1]) for c in (lo[2], hi[2])])
+            moved = T_obj_cloud.apply(corners)
+            lo, hi = moved.min(axis=0), moved.max(axis=0)
+        lows.append(lo)
+        highs.append(hi)
+    if lows:
+        bounds_min, bounds_max = np.min(lows, axis=0), np.max(highs, axis=0)
+    else:  # no header bounds (E57): the rasters cannot be placed
+        bounds_min, bounds_max = np.zeros(3), np.ones(3)
+        config = _without_views(config)
+    t0 = min(float(np.min(s)) for s in stamps_s) if stamps_s else 0.0
+    t1 = max(float(np.max(s)) for s in stamps_s) if stamps_s else 1.0
+    crs = describe_crs(read_las_crs(clouds[0])) if clouds and Path(clouds[0]).suffix.lower() in (".las", ".laz") \
+        else {}
+    vertical = None
+    if config.cloud_views and trajectories:  # along the longest straight stretch of the first run
+        line = longest_straight_stretch(trajectories[0].stamps_s, trajectories[0].poses.t_xyz[:, :2])
+        vertical = None if line is None else VerticalPlane(line[0], line[1], config.section_band_m)
+    planes = None
+    if static is not None and config.cloud_views:
+        from kinreg.report.deviations import static_planes_from_e57
+
+        planes = static_planes_from_e57(static, np.asarray(bounds_min) - 1.0)
+    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs, planes, vertical)
+
+
+def _without_views(config: ReportConfig) -> ReportConfig:
+    import dataclasses
+
+    return dataclasses.replace(config, cloud_views=False)
