@@ -35,7 +35,7 @@ from pye57 import libe57
 
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.io import atomic
-from kinreg.io.e57 import write_e57_sequence
+from kinreg.io.e57_writer import write_e57_sequence
 from kinreg.io.trajectory import write_trajectory_geoslam
 from kinreg.run import spill as slicing
 from kinreg.types import Scan, ScanKind, Trajectory

@@ -363,7 +363,7 @@ def test_cli_refuses_parallel_planes(tmp_path, capsys):
 
 
 def test_cli_e57_without_scans(tmp_path, capsys, small_room_run):
-    from kinreg.io.e57 import E57SequenceWriter
+    from kinreg.io.e57_writer import E57SequenceWriter
 
     sim, start = small_room_run
     _, traj, planes = _write_inputs(tmp_path, sim)

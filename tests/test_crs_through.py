@@ -17,7 +17,7 @@ from laspy.vlrs.vlrlist import VLRList
 from pye57 import libe57
 
 from kinreg.geometry import Pose
-from kinreg.io.e57 import write_e57_sequence
+from kinreg.io.e57_writer import write_e57_sequence
 from kinreg.io.las import read_las_crs
 from kinreg.run.corrected_cloud import write_corrected_las
 from kinreg.types import Scan, ScanKind

@@ -13,16 +13,10 @@ from pye57 import libe57
 
 from kinreg.errors import CloudError, OutputError
 from kinreg.geometry import Pose, rotvec_to_quat
-from kinreg.io import e57 as kinreg_e57
+from kinreg.io import e57_writer as kinreg_e57_writer
 from kinreg.io.cloud import open_cloud
-from kinreg.io.e57 import (
-    E57CloudReader,
-    E57SequenceWriter,
-    iter_e57_scans,
-    list_e57_scans,
-    read_e57_scan,
-    write_e57_sequence,
-)
+from kinreg.io.e57 import E57CloudReader, iter_e57_scans, list_e57_scans, read_e57_scan
+from kinreg.io.e57_writer import E57SequenceWriter, write_e57_sequence
 from kinreg.types import Scan, ScanKind
 
 REALDATA = Path(__file__).resolve().parents[2] / "shared" / "realdata"
@@ -158,7 +152,7 @@ def test_cloud_reader_object_frame(sequence: Path, scans: list[Scan]) -> None:
 
 def test_chunked_equals_single_chunk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # Several write blocks per scan as well as several read chunks.
-    monkeypatch.setattr(kinreg_e57, "WRITE_BLOCK_POINTS", 4_000)
+    monkeypatch.setattr(kinreg_e57_writer, "WRITE_BLOCK_POINTS", 4_000)
     rng = np.random.default_rng(3)
     path = tmp_path / "big.e57"
     write_e57_sequence(path, [_scan(rng, 0, 10_001), _scan(rng, 1, 2_345)])
@@ -324,7 +318,7 @@ def test_writer_leaves_nothing_on_failure(tmp_path: Path, scans: list[Scan]) -> 
 def test_writer_failure_inside_libe57_leaves_nothing(
     tmp_path: Path, scans: list[Scan], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(kinreg_e57, "WRITE_BLOCK_POINTS", 500)
+    monkeypatch.setattr(kinreg_e57_writer, "WRITE_BLOCK_POINTS", 500)
     original = libe57.CompressedVectorWriter.write
     calls = []
 

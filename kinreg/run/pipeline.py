@@ -118,7 +118,7 @@ def slice_to_e57(
     progress: Progress | None = None,
 ) -> SlicingSummary:
     """``kinreg slice``: read, slice into quasi-static scans, export one E57 sequence."""
-    from kinreg.io.e57 import write_e57_sequence
+    from kinreg.io.e57_writer import write_e57_sequence
 
     progress = progress or NullProgress()
     check_writable_target(Path(out_path), overwrite)  # fail before the long work, not after

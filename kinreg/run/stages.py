@@ -400,7 +400,7 @@ def counted(scans: Iterator[Scan], progress: Progress, stage: str, total: int) -
 def write_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan: LargeOutputs, run: RunCache,
                    progress: Progress, crs_wkt: str = "") -> None:
     """``sequence.e57``: the quasi-static scans of every run with their adjusted poses (unless still current)."""
-    from kinreg.io.e57 import write_e57_sequence
+    from kinreg.io.e57_writer import write_e57_sequence
 
     done = "sequence.e57" in plan.current
     if not done:
