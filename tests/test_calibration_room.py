@@ -35,7 +35,7 @@ from kinreg.io.reference_planes import ReferencePlane, ReferencePlanes, parse_re
 
 
 @pytest.fixture(scope="module")
-def roomrun_cli():
+def room_run():
     """One seeded run of the issue-19 scenario (room in the cloud) and its starting values."""
     cfg, start = room_scenario(2)
     return simulate_calibration(cfg, seed=2), start
@@ -306,10 +306,8 @@ def _start_args(start: SystemCalibration) -> list[str]:
             "--boresight-deg", ",".join(f"{v:.6f}" for v in np.degrees(start.boresight_rad))]
 
 
-
-
 @pytest.fixture(scope="module")
-def small_roomrun_cli():
+def small_room_run():
     cfg, start = room_scenario(7, n_profiles=20)
     return simulate_calibration(cfg, seed=7), start
 

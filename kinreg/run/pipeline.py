@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -38,7 +39,7 @@ from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
 from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
 from kinreg.progress import NullProgress, Progress
-from kinreg.report.cloud_views import cloud_views_for_runs
+from kinreg.report.cloud_views import FIGURES_DIR, cloud_views_for_runs
 from kinreg.report.html import render_html
 from kinreg.report.json import build_failure_report, build_report, write_report_json
 from kinreg.report.tables import (
@@ -349,6 +350,7 @@ def adjust_or_fail(network: Network, planes: list[tuple[Plane, ...]], static: St
         return adjust_with_measured_drift(network, planes, static, config, progress, executor)
     except AdjustmentFailedError as e:
         remove_outputs(out, outputs)
+        shutil.rmtree(out / FIGURES_DIR, ignore_errors=True)  # the report's images of an earlier run
         if config.block.on_failure is not OnFailure.REPORT:
             raise
         report = build_failure_report(inputs=report_inputs, config_toml=format_toml(config), result=e.result,
