@@ -192,12 +192,17 @@ def adjust_with_measured_drift(
     prior_rates = DriftRates.from_config(config.drift)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
+    linked_with = prior_rates
     for _ in range(config.block.max_relink_rounds):
         # Matched again from the adjusted poses: pairs that the trajectory's drift kept apart or
         # out of the gates (loop closures) are linked now, and the planes' window deformation
-        # follows the measured rates. Until the set of linked pairs no longer changes.
+        # follows the measured rates. Until the set of linked pairs no longer changes. Links whose
+        # prior hardly moved are kept, unless the drift is faster than they were made with.
+        faster = bool(np.any(rates.pos_m_per_s > 1.2 * linked_with.pos_m_per_s)
+                      or np.any(rates.rot_rad_per_s > 1.2 * linked_with.rot_rad_per_s))
         links = link_stations(network.stations, planes, config.matching, config.drift, config.pairwise, progress,
-                              static, executor, rates, adjusted=result)
+                              static, executor, rates, adjusted=result, previous=() if faster else network.links)
+        linked_with = rates if faster else linked_with
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
         network = network.with_links(links)
@@ -246,6 +251,7 @@ def link_stations(
     executor: ExecutorContext | None = None,
     rates: DriftRates | None = None,
     adjusted: BlockResult | None = None,
+    previous: Sequence[Link] = (),
 ) -> list[Link]:
     """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
     batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
@@ -256,10 +262,13 @@ def link_stations(
     With an ``adjusted`` network the pairs are found, matched and given their prior from its
     poses (the prior's sigmas: twice the stations' adjusted sigmas combined, with the drift's
     floors), so that loop closures across an accumulated drift come within the gates.
+    A ``previous`` link of a pair whose prior the adjustment moved by less than a tenth of the
+    matching gates is kept as it is (matching it again would find the same planes).
     Returns the links in pair order, whatever the number of workers.
     """
     progress = progress or NullProgress()
     sigmas = None
+    initial = stations
     if adjusted is not None:
         stations = [replace(s, T_obj_scan=adjusted.poses[k]) for k, s in enumerate(stations)]
         floor = pose_sigmas((rates or DriftRates.from_config(drift)).pos_floor_m,
@@ -267,11 +276,13 @@ def link_stations(
         own = np.sqrt(np.maximum(np.diagonal(adjusted.cov_xi, axis1=1, axis2=2), 0.0))
         sigmas = 2.0 * np.hypot(own, floor / np.sqrt(2.0))
     pairs = station_pairs(stations, matching, static)
+    kept = _unmoved_links(previous, pairs, initial, stations, matching) if adjusted is not None else {}
+    todo = [pair for pair in pairs if pair not in kept]
     # Once per station, not once per pair: matching does not look at the covariances.
     rates = rates or DriftRates.from_config(drift)
     planes = [with_window_deformation(p, s.T_obj_scan, rates) for s, p in zip(stations, planes, strict=True)]
     configs = (matching, drift, pairwise, static)
-    batches = [pairs[k:k + _PAIRS_PER_TASK] for k in range(0, len(pairs), _PAIRS_PER_TASK)]
+    batches = [todo[k:k + _PAIRS_PER_TASK] for k in range(0, len(todo), _PAIRS_PER_TASK)]
     progress.start("link", total=len(batches), unit="batches")
 
     def task(batch: list[tuple[int, int]]) -> tuple:
@@ -282,10 +293,30 @@ def link_stations(
 
     results = parallel_map(_link_batch, (task(b) for b in batches), executor or in_process(), progress)
     progress.finish()
-    links = [link for batch in results for link in batch if link is not None]
+    found = {(link.scan_i, link.scan_j): link for batch in results for link in batch if link is not None}
+    links = [found.get(pair) or kept[pair] for pair in pairs if pair in found or pair in kept]
     n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
-    log.info("%d candidate pairs, %d links (%d rejected)", len(pairs), len(links), n_rejected)
+    log.info("%d candidate pairs, %d links (%d rejected, %d kept)", len(pairs), len(links), n_rejected, len(kept))
     return links
+
+
+def _unmoved_links(previous: Sequence[Link], pairs: Sequence[tuple[int, int]], initial: Sequence[Station],
+                   adjusted: Sequence[Station], matching: MatchingConfig) -> dict[tuple[int, int], Link]:
+    """The ``previous`` links of ``pairs`` whose prior (the stations' relative pose) moved from
+    ``initial`` to ``adjusted`` by less than a tenth of the matching gates."""
+    old = {(link.scan_i, link.scan_j): link for link in previous}
+    kept = {}
+    for i, j in pairs:
+        link = old.get((i, j))
+        if link is None:
+            continue
+        before = initial[i].T_obj_scan.inverse().compose(initial[j].T_obj_scan)
+        after = adjusted[i].T_obj_scan.inverse().compose(adjusted[j].T_obj_scan)
+        moved = before.inverse().compose(after).log()
+        if (np.linalg.norm(moved[:3]) < 0.1 * matching.max_offset_m
+                and np.degrees(np.linalg.norm(moved[3:])) < 0.1 * matching.max_angle_deg):
+            kept[(i, j)] = link
+    return kept
 
 
 def read_input_trajectory(path: str | Path, config: InputConfig) -> Trajectory:
