@@ -40,6 +40,9 @@ from kinreg.geometry import (
 )
 from kinreg.types import Trajectory, TrajectoryJump
 
+# Grid of the correction for points [s] (:meth:`DriftCorrection.apply_to_points`).
+POINT_GRID_S = 0.01
+
 
 @dataclass(frozen=True, eq=False)
 class DriftCorrection:
@@ -89,12 +92,32 @@ class DriftCorrection:
         return values[:, :3], values[:, 3:6], values[:, 6:] + origin
 
     def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
-        """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,)."""
+        """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,).
+
+        ``x' = x + (R - I)(x - p) + delta`` with ``R - I``, ``p`` and ``delta`` evaluated on a grid of
+        :data:`POINT_GRID_S` and interpolated linearly to each point's time: the correction changes
+        over seconds, so this is within 0.01 mm (a few micrometres) of evaluating it at every point (the pivot's error
+        enters multiplied by the correction's small angle), at a fraction of the cost (no spline
+        and no rotation matrix per point)."""
         if self.jump_steps is not None:
             xyz = self.without_jumps(stamps_s).apply(xyz)
-        rotvec, delta, pivot = self._at(stamps_s)
-        R = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix
-        return np.einsum("nij,nj->ni", R, xyz - pivot) + pivot + delta
+        t = np.asarray(stamps_s, dtype=np.float64)
+        if len(t) == 0:
+            return np.array(xyz, dtype=np.float64, copy=True)
+        lo, hi = float(t.min()), float(t.max())
+        grid = lo + POINT_GRID_S * np.arange(int(np.ceil((hi - lo) / POINT_GRID_S)) + 2)
+        # the first and last station are nodes too: the correction is held constant beyond them
+        grid = np.union1d(grid, self.stamps_s[[0, -1]])
+        rotvec, delta, pivot = self._at(grid)
+        A = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix - np.eye(3)
+        origin = pivot[0]  # interpolated relative to it: UTM-sized values keep their precision
+
+        def at(values: FloatArray) -> FloatArray:
+            return np.column_stack([np.interp(t, grid, values[:, k]) for k in range(values.shape[1])])
+
+        d = xyz - (at(pivot - origin) + origin)
+        A_t = at(A.reshape(-1, 9)).reshape(-1, 3, 3)
+        return xyz + np.einsum("nij,nj->ni", A_t, d) + at(delta)
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""
