@@ -240,6 +240,10 @@ def open_output_folder(out_dir: Path, fixed_outputs: tuple[str, ...], n_runs: in
         run = open_run_cache(out_dir, outputs, overwrite=overwrite, resume=resume)
         try:
             yield run
+        except OutputError as e:
+            if e.path is None or Path(e.path).parent != run.staging:
+                raise
+            raise OutputError(e.reason, out_dir / Path(e.path).name) from None  # the name the user knows
         finally:
             run.discard_outputs()
 
