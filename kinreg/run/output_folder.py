@@ -292,11 +292,14 @@ def _take_lock(path: Path, out_dir: Path) -> int:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                # A file system without locks (some network shares) must not stop the work.
+                log.warning("%s: cannot lock (%s); make sure that no other kinreg writes here",
+                            path, e.strerror or e)
+                return fd
             holder = _lock_holder(fd)
             os.close(fd)
-            if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise OutputError(f"another kinreg (pid {holder}) is writing here", out_dir) from None
-            raise OutputError(f"cannot lock: {e.strerror or e}", path) from None
+            raise OutputError(f"another kinreg (pid {holder}) is writing here", out_dir) from None
         try:
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
         except FileNotFoundError:
@@ -307,13 +310,15 @@ def _take_lock(path: Path, out_dir: Path) -> int:
 
 
 def _lock_holder(fd: int) -> str:
-    """The pid in a held lock file (the holder writes it just after taking the lock)."""
+    """The pid in a held lock file. The holder writes it just after taking the lock, over the
+    pid of a killed holder, if any: wait a moment for a living one."""
+    text = ""
     for _ in range(50):
         text = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
-        if text.isdigit():
+        if text.isdigit() and process_alive(int(text)):
             return text
         time.sleep(0.01)
-    return "unknown"
+    return text if text.isdigit() else "unknown"
 
 
 def complete_commit(out_dir: Path, fixed_outputs: tuple[str, ...]) -> None:
