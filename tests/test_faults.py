@@ -117,6 +117,23 @@ def test_a_second_run_is_refused_while_the_first_writes_and_the_first_is_not_dis
     assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER}  # the lock went with the run
 
 
+def test_of_two_runs_started_together_one_runs_and_the_other_is_refused(run: Path, tmp_path: Path) -> None:
+    out = tmp_path / "together"
+    procs = [start_kinreg(cli_args(run, out, *extra), tmp_path / f"{k}.err")
+             for k, extra in enumerate([(), ("--resume",)])]
+    try:
+        codes = [proc.wait(timeout=300) for proc in procs]
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+    assert sorted(codes) == [0, 1], [(tmp_path / f"{k}.err").read_text() for k in range(2)]
+    winner, loser = (0, 1) if codes[0] == 0 else (1, 0)
+    assert (tmp_path / f"{loser}.err").read_text() == \
+        f"kinreg: error: {out}: another kinreg (pid {procs[winner].pid}) is writing here\n"
+    assert outputs(out) == outputs(run / "reference")
+
+
 def test_a_refused_run_changes_nothing_in_the_folder(run: Path, tmp_path: Path,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     """Held here (a second open of the lock file conflicts like another process): not even

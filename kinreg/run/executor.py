@@ -41,7 +41,10 @@ module) when the calling process ends, each worker (in its initialiser) when the
 ends. A worker also ignores SIGINT: Ctrl-C reaches the whole process group, and it is the
 calling process that decides; when the ``with make_executor(...)`` block is left by an
 exception (Ctrl-C, a failed task), the workers are terminated at once instead of finishing
-their current tasks. Elsewhere (macOS) workers of a killed caller may outlive it.
+their current tasks. Elsewhere (macOS) workers of a killed caller may outlive it. The kernel
+ties the forkserver to the *thread* that started it (the one that first submitted work): a
+program that runs kinreg in a thread that then ends loses that forkserver, and multiprocessing
+starts a new one for the next pool.
 """
 
 from __future__ import annotations
