@@ -213,9 +213,10 @@ def _alive(processes: dict[int, str]) -> list[int]:
     signal.SIGINT,
 ], ids=lambda sig: sig.name)
 def test_the_workers_end_with_their_parent(sig: signal.Signals, tmp_path: Path) -> None:
-    stderr = tmp_path / "kinreg.err"
+    stderr, config = tmp_path / "kinreg.err", tmp_path / "kinreg.toml"
+    config.write_text(f'[slicing]\ntemp_dir = "{tmp_path}"\n')  # the spill a killed run leaves goes with the test
     proc = start_kinreg(["process", "-t", "sample_data/run_trajectory.txt", "-c", "sample_data/run_cloud.laz",
-                         "-o", str(tmp_path / "out"), "--workers", "2"], stderr)
+                         "-o", str(tmp_path / "out"), "--workers", "2", "--config", str(config)], stderr)
     try:
         # the forkserver and the resource tracker are its children, the workers its grandchildren
         wait_for(lambda: sum(_processes().get(p, (0,))[0] != proc.pid for p in _descendants(proc.pid)) >= 2,
@@ -238,6 +239,7 @@ def test_the_workers_end_with_their_parent(sig: signal.Signals, tmp_path: Path) 
         assert stderr.read_text() == "kinreg: interrupted\n"  # no traceback of a worker or the pool
     else:
         assert proc.returncode == -sig
+        assert list(tmp_path.glob("kinreg-slices-*"))  # killed: the spill is kept for --resume
 
 
 # --------------------------------------------------------------------------- no finished-looking outputs
