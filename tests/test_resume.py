@@ -137,9 +137,9 @@ def kill(proc: subprocess.Popen) -> None:
 
 
 def assert_nothing_looks_finished(out: Path) -> None:
-    """No output but the corrected trajectory (written first, and complete), and beside it only
-    hidden files: the cache and temporaries."""
-    names = {p.name for p in out.iterdir()} - {"trajectory_corrected.txt"}
+    """No output at all, not even the complete ones of the killed run: only hidden files (the
+    cache, the staged outputs, the lock)."""
+    names = {p.name for p in out.iterdir()}
     assert not names & set(OUTPUT_FILES)
     assert all(name.startswith(".") for name in names), names
 
@@ -165,10 +165,12 @@ def test_a_run_killed_twice_and_resumed_gives_the_outputs_of_an_uninterrupted_ru
     # 2. resumed, and killed again while the corrected cloud is being written
     proc = start_kinreg(run, out, "--resume")
     try:
-        wait_for(lambda: list(out.glob(".corrected.tmp-*.laz")), proc, "the corrected cloud being written")
+        wait_for(lambda: list(out.glob(".kinreg-staging/.corrected.tmp-*.laz")), proc,
+                 "the corrected cloud being written")
     finally:
         kill(proc)
     assert_nothing_looks_finished(out)
+    assert (out / ".kinreg-staging" / "trajectory_corrected.txt").is_file()  # complete, but not in place
     assert n_planes() == 4
 
     # 3. resumed to the end
@@ -185,6 +187,7 @@ def test_a_run_killed_twice_and_resumed_gives_the_outputs_of_an_uninterrupted_ru
     }
     assert outputs(out) == outputs(run / "reference")
     assert not [p for p in out.iterdir() if ".tmp-" in p.name]  # the killed runs' temporaries are gone
+    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER}  # no staging folder, no lock
     assert not list((run / "spill").iterdir())
 
 

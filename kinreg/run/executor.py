@@ -31,13 +31,30 @@ argument is copied to the worker.
 
 Results come back in input order whatever the number of workers, and the tasks themselves do
 not depend on it, so results are identical for any ``workers`` and for a cluster.
+
+Local workers die with the calling process, however it ends. The pool's queues keep a worker
+waiting for work forever once the caller is gone, and every worker holds the forkserver's
+"alive" pipe open, so without help a killed ``kinreg`` leaves the forkserver and its workers
+behind. On Linux each link of the chain asks the kernel for SIGTERM when its parent ends
+(``prctl(PR_SET_PDEATHSIG)``, :func:`die_with_parent`): the forkserver (in its preloaded
+module) when the calling process ends, each worker (in its initialiser) when the forkserver
+ends. A worker also ignores SIGINT: Ctrl-C reaches the whole process group, and it is the
+calling process that decides; when the ``with make_executor(...)`` block is left by an
+exception (Ctrl-C, a failed task), the workers are terminated at once instead of finishing
+their current tasks. Elsewhere (macOS) workers of a killed caller may outlive it. The kernel
+ties the forkserver to the *thread* that started it (the one that first submitted work): a
+program that runs kinreg in a thread that then ends loses that forkserver, and multiprocessing
+starts a new one for the next pool.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import multiprocessing
 import os
+import signal
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
@@ -57,8 +74,53 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
                     "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
+# prctl(2) option: the signal this process gets when its parent (thread) ends.
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(sig: signal.Signals = signal.SIGTERM, ancestor_pid: int | None = None) -> bool:
+    """Ask the kernel to send ``sig`` to this process when its parent ends (Linux; elsewhere a
+    no-op that returns False). If the parent, or ``ancestor_pid`` (a process further up the
+    chain), has already ended by the time the request is in place, ``sig`` is sent to this
+    process at once. Returns whether the request was made. Only for kinreg's own child
+    processes: the setting is cleared for children forked from this one."""
+    if not sys.platform.startswith("linux"):
+        return False
+    parent = os.getppid()
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
+            log.debug("prctl(PR_SET_PDEATHSIG) failed: %s", os.strerror(ctypes.get_errno()))
+            return False
+    except (OSError, AttributeError):  # no libc with prctl
+        return False
+    # The parent may have ended before the request: then no signal will come.
+    if os.getppid() != parent or (ancestor_pid is not None and not _alive(ancestor_pid)):
+        os.kill(os.getpid(), sig)
+    return True
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def start_worker(caller_pid: int) -> None:
+    """Initialiser of every local worker process: ends with its parent (the forkserver, which
+    ends with ``caller_pid``), leaves SIGINT to the caller, one BLAS/OpenMP thread (see the
+    module docstring). Never called in the calling process."""
+    die_with_parent(ancestor_pid=caller_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    limit_worker_threads()
+
+
 def limit_worker_threads() -> None:
-    """Initialiser of every local worker process: one BLAS/OpenMP thread (see the module
+    """One BLAS/OpenMP thread in a local worker process or the forkserver (see the module
     docstring). Never called in the calling process."""
     for name in THREAD_VARIABLES:
         os.environ[name] = "1"
@@ -140,11 +202,29 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
     if n == 1:
         yield in_process()
         return
-    pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context(), initializer=limit_worker_threads)
+    pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context(), initializer=start_worker,
+                               initargs=(os.getpid(),))
     try:
         yield ExecutorContext(pool, n, "processes")
+    except BaseException:
+        _stop_now(pool)  # the caller gives up: no waiting for the tasks that are running
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _stop_now(pool: ProcessPoolExecutor) -> None:
+    """Shut ``pool`` down and terminate its workers, also those in the middle of a task."""
+    # concurrent.futures has no public way to reach the workers before Python 3.14
+    # (terminate_workers()); shutdown() forgets them, so take them first.
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    # Shut down before terminating: the pool's manager thread then drops the cancelled tasks before
+    # it sees the workers gone (else Python 3.11 fails in that thread setting a cancelled future).
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(timeout=5.0)
 
 
 @contextmanager

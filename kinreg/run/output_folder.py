@@ -33,17 +33,36 @@ by each run's own files, the corrected cloud of each run by its own name and cor
 
 Every key also covers the cache schema and kinreg version. At the end of a finished run the
 entries it did not use are deleted, so the cache holds one run's results (kilobytes per scan).
+
+One writer per folder (:func:`open_output_folder`): a run holds an OS lock (``flock``) on
+``<out>/.kinreg.lock``, with its pid inside, from before it looks at the folder until it ends; a
+second run on the same folder is refused ("another kinreg (pid N) is writing here") and changes
+nothing. The kernel releases the lock of a process that ends in any way, so a killed run never
+leaves a lock that blocks: its file is taken over. The lock lives beside the cache, not in it,
+because ``--overwrite`` deletes the cache folder and a run that stored nothing removes it.
+
+No finished-looking outputs of an unfinished run: a run writes its outputs into
+``<out>/.kinreg-staging/`` and moves them into the folder together at the end
+(:meth:`RunCache.commit_outputs`), after it has written down what it is going to move and
+remove (``.kinreg-staging/.commit.json``): a run killed while moving is completed by the next
+one that opens the folder. ``report.json``, the mark of a finished run, goes first (the earlier
+one) and comes last (the new one). The outputs of an earlier run stay until then: a failed or
+killed ``--resume`` leaves them as they were, beside only the cache and hidden temporaries; a
+still-current large output of the earlier run is kept as it is, the others are replaced or
+removed.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import logging
 import os
 import re
 import shutil
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -58,6 +77,7 @@ from kinreg.geometry import Pose
 from kinreg.io.checks import time_filter
 from kinreg.io.cloud import open_cloud
 from kinreg.progress import Progress
+from kinreg.run import runs
 from kinreg.run.codecs import planes_to_arrays, stations_to_arrays
 from kinreg.run.spill import (
     SPILL_COMPLETE,
@@ -70,9 +90,20 @@ from kinreg.run.spill import (
 from kinreg.run.stage_cache import CacheEntry, StageCache, process_alive
 from kinreg.types import Plane, SlicingSummary, Trajectory
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover  (Windows: no lock)
+    fcntl = None  # type: ignore[assignment]
+
 log = logging.getLogger(__name__)
 
 CACHE_FOLDER = ".kinreg-cache"
+LOCK_FILE = ".kinreg.lock"
+STAGING_FOLDER = ".kinreg-staging"
+# In the staging folder while its outputs are moved into place: what is moved and what removed.
+_COMMIT_RECORD = ".commit.json"
+# Written first and moved last: its presence marks a finished run.
+_FINISHED_MARK = "report.json"
 # Where the spill of the run is while it lives (a JSON file in the cache folder); with several
 # runs, each has its own: spill.json for the first, spill_r2.json for the second, ...
 _SPILL_RECORD = "spill.json"
@@ -93,6 +124,8 @@ class RunCache:
 
     out_dir: Path
     cache: StageCache
+    # every output name this run may find or leave in the folder (runs.output_files)
+    outputs: tuple[str, ...] = ()
     used: set[tuple[str, str]] = field(default_factory=set)
     use: dict[str, StageUse] = field(default_factory=dict)
 
@@ -131,8 +164,47 @@ class RunCache:
             entry.meta.get("mtime_ns") == st.st_mtime_ns
 
     def record_output(self, name: str, key: str) -> None:
-        st = (self.out_dir / name).stat()
+        """Record ``name``, just written into the staging folder, under ``key`` (moving it into
+        the output folder keeps its size and modification time)."""
+        st = (self.staging / name).stat()
         self.store("output", key, {}, {"file": name, "size": st.st_size, "mtime_ns": st.st_mtime_ns})
+
+    @property
+    def staging(self) -> Path:
+        """Where this run writes its outputs (:meth:`start_outputs`) until :meth:`commit_outputs`."""
+        return self.out_dir / STAGING_FOLDER
+
+    def start_outputs(self) -> Path:
+        """Create the staging folder (if need be) and return it."""
+        try:
+            self.staging.mkdir(exist_ok=True)
+        except OSError as e:
+            raise OutputError(f"cannot create a folder: {e.strerror or e}", self.staging) from None
+        return self.staging
+
+    def commit_outputs(self, keep: frozenset[str] = frozenset()) -> None:
+        """Move every output written into the staging folder into the output folder, and remove
+        every other output of an earlier run except those in ``keep`` (still current). Written
+        down first, so that a run killed halfway is completed by the next (see the module
+        docstring). Raises :class:`OutputError`."""
+        written = [name for name in self.outputs if (self.staging / name).is_file()]
+        gone = [name for name in self.outputs
+                if name not in written and name not in keep and (self.out_dir / name).exists()]
+        try:
+            self.start_outputs()
+            record = self.staging / _COMMIT_RECORD
+            tmp = record.with_name(f"{record.name}.tmp-{os.getpid()}")
+            tmp.write_text(json.dumps({"move": written, "remove": gone}) + "\n", encoding="utf-8")
+            os.replace(tmp, record)
+        except OSError as e:
+            raise _output_error(e, self.staging) from None
+        _apply_commit(self.out_dir, written, gone)
+
+    def discard_outputs(self) -> None:
+        """Delete the staging folder of an unfinished run, unless its outputs are being moved
+        into place (a commit record): then the next run completes that."""
+        if self.staging.is_dir() and not (self.staging / _COMMIT_RECORD).exists():
+            shutil.rmtree(self.staging, ignore_errors=True)
 
     def finish(self) -> None:
         """After a finished run: delete the entries it did not use."""
@@ -150,8 +222,158 @@ def output_folder_state(out_dir: Path, output_files: tuple[str, ...]) -> tuple[b
     return results, (out_dir / CACHE_FOLDER).is_dir()
 
 
+@contextmanager
+def open_output_folder(out_dir: Path, fixed_outputs: tuple[str, ...], n_runs: int, overwrite: bool,
+                       resume: bool) -> Iterator[RunCache]:
+    """Open the output folder for one ``kinreg process`` run of ``n_runs`` runs: take its writer
+    lock (:func:`output_folder_lock`), complete the commit of a run killed while moving its
+    outputs into place, then check the folder against the flags and open the stage cache
+    (:func:`open_run_cache`). The lock is held until the block ends; on leaving it without a
+    commit, the staged outputs are deleted. Raises :class:`OutputError` (another kinreg writes
+    here, ...) and :class:`ConfigError` (both flags), before anything in the folder changes."""
+    if overwrite and resume:
+        raise ConfigError("--resume and --overwrite exclude each other (--resume re-uses the stage cache, "
+                          "--overwrite starts afresh)")
+    with output_folder_lock(out_dir):
+        complete_commit(out_dir, fixed_outputs)
+        outputs = runs.output_files(out_dir, fixed_outputs, n_runs)
+        run = open_run_cache(out_dir, outputs, overwrite=overwrite, resume=resume)
+        try:
+            yield run
+        except OutputError as e:
+            if e.path is None or Path(e.path).parent != run.staging:
+                raise
+            raise OutputError(e.reason, out_dir / Path(e.path).name) from None  # the name the user knows
+        finally:
+            run.discard_outputs()
+
+
+@contextmanager
+def output_folder_lock(out_dir: Path) -> Iterator[None]:
+    """Hold the writer lock of ``out_dir`` (created if missing) while the block runs: an
+    exclusive ``flock`` on ``out_dir/.kinreg.lock``, which holds this process's pid. Raises
+    :class:`OutputError` "another kinreg (pid N) is writing here" at once if another process
+    (or another open of this process) holds it. A lock file left by a killed process holds no
+    lock and is taken over. Without ``fcntl`` (Windows) there is no lock."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise OutputError("exists and is not a folder", out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create the folder: {e.strerror or e}", out_dir) from None
+    if fcntl is None:  # pragma: no cover
+        yield
+        return
+    path = out_dir / LOCK_FILE
+    fd = _take_lock(path, out_dir)
+    try:
+        try:
+            earlier = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
+            if earlier:
+                log.info("%s: taken over from pid %s, which is no longer running", path, earlier)
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        except OSError as e:
+            raise OutputError(f"cannot write: {e.strerror or e}", path) from None
+        yield
+    finally:
+        # Unlinked while still held: a process that opened this file meanwhile finds, once it
+        # holds the lock, that its file is no longer the one at the path, and starts over.
+        path.unlink(missing_ok=True)
+        os.close(fd)
+
+
+def _take_lock(path: Path, out_dir: Path) -> int:
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise OutputError(f"cannot create the lock file: {e.strerror or e}", path) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                # A file system without locks (some network shares) must not stop the work.
+                log.warning("%s: cannot lock (%s); make sure that no other kinreg writes here",
+                            path, e.strerror or e)
+                return fd
+            holder = _lock_holder(fd)
+            os.close(fd)
+            raise OutputError(f"another kinreg (pid {holder}) is writing here", out_dir) from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd
+        os.close(fd)  # the holder removed it before we got it: take the new one
+
+
+def _lock_holder(fd: int) -> str:
+    """The pid in a held lock file. The holder writes it just after taking the lock, over the
+    pid of a killed holder, if any: wait a moment for a living one."""
+    text = ""
+    for _ in range(50):
+        text = os.pread(fd, 64, 0).decode("ascii", "replace").strip()
+        if text.isdigit() and process_alive(int(text)):
+            return text
+        time.sleep(0.01)
+    return text if text.isdigit() else "unknown"
+
+
+def complete_commit(out_dir: Path, fixed_outputs: tuple[str, ...]) -> None:
+    """Complete the commit of a run killed while it moved its outputs into place, and delete
+    the staging folder of a run killed before that. Only under the writer lock."""
+    staging = out_dir / STAGING_FOLDER
+    if not staging.is_dir() or staging.is_symlink():
+        return
+    try:
+        data = json.loads((staging / _COMMIT_RECORD).read_text(encoding="utf-8"))
+        move, remove = list(data["move"]), list(data["remove"])
+    except (OSError, ValueError, KeyError, TypeError):  # no record: the run was killed before its end
+        move = remove = []
+    # The record is a file in the user's folder: act on output names only.
+    names = set(fixed_outputs)
+    if (move or remove) and all(_is_output_name(n, names) for n in move + remove):
+        log.info("%s: completing the commit of an interrupted run", out_dir)
+        _apply_commit(out_dir, [n for n in move if (staging / n).is_file()], remove)
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+def _is_output_name(name: object, names: set[str]) -> bool:
+    return isinstance(name, str) and (name in names or _RUN_OUTPUT_NAME.fullmatch(name) is not None)
+
+
+_RUN_OUTPUT_NAME = re.compile(r"corrected_r\d+\.laz|trajectory_corrected_r\d+\.txt")
+
+
+def _apply_commit(out_dir: Path, move: Sequence[str], remove: Sequence[str]) -> None:
+    """Move ``move`` from the staging folder into ``out_dir`` and delete ``remove`` there: the
+    finished mark of the earlier run first, the new one last; then the staging folder goes."""
+    staging = out_dir / STAGING_FOLDER
+    last = [name for name in move if name == _FINISHED_MARK]
+    try:
+        (out_dir / _FINISHED_MARK).unlink(missing_ok=True)
+        for name in remove:
+            (out_dir / name).unlink(missing_ok=True)
+        for name in [*(name for name in move if name != _FINISHED_MARK), *last]:
+            os.replace(staging / name, out_dir / name)
+        (staging / _COMMIT_RECORD).unlink(missing_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot move the outputs into place ({e.strerror or e}); the next kinreg process "
+                          "--resume in this folder completes it", out_dir) from None
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+def _output_error(e: OSError, path: Path) -> OutputError:
+    if e.errno == errno.ENOSPC:
+        return OutputError("disk full while writing", path)
+    return OutputError(f"cannot write: {e.strerror or e}", path)
+
+
 def open_run_cache(out_dir: Path, output_files: tuple[str, ...], overwrite: bool, resume: bool) -> RunCache:
-    """Check the output folder against the flags and open its stage cache.
+    """Check the output folder against the flags and open its stage cache (under the writer
+    lock: :func:`open_output_folder`).
 
     - neither flag: the folder must hold no kinreg results and no stage cache;
     - ``resume``: the folder's cache is used; a folder that holds neither results nor a cache
@@ -174,7 +396,8 @@ def open_run_cache(out_dir: Path, output_files: tuple[str, ...], overwrite: bool
         if has_cache:
             raise OutputError("holds an unfinished kinreg run; use --resume to continue it or --overwrite to "
                               "start afresh", out_dir)
-    if resume and not has_results and not has_cache and out_dir.is_dir() and any(out_dir.iterdir()):
+    if resume and not has_results and not has_cache and out_dir.is_dir() and \
+            any(p.name not in (LOCK_FILE, STAGING_FOLDER) for p in out_dir.iterdir()):
         raise OutputError("holds no kinreg run to resume (no results, no .kinreg-cache); check --out or "
                           "leave out --resume", out_dir)
     cache = StageCache(out_dir / CACHE_FOLDER)
@@ -190,7 +413,7 @@ def open_run_cache(out_dir: Path, output_files: tuple[str, ...], overwrite: bool
         log.info("%s: resuming with the stage cache", out_dir)
     cache.remove_stale()
     remove_stale_outputs(out_dir, output_files)
-    return RunCache(out_dir, cache)
+    return RunCache(out_dir, cache, output_files)
 
 
 def remove_stale_outputs(out_dir: Path, output_files: tuple[str, ...]) -> None:
@@ -203,16 +426,6 @@ def remove_stale_outputs(out_dir: Path, output_files: tuple[str, ...]) -> None:
         m = pattern.fullmatch(path.name)
         if m and m.group(1) in stems and path.is_file() and not process_alive(int(m.group(2))):
             path.unlink(missing_ok=True)
-
-
-def remove_outputs(out_dir: Path, names: tuple[str, ...]) -> None:
-    """Delete outputs of an earlier run before this run writes its own, so that the folder never
-    mixes two runs (``report.json``, written last, marks a finished run)."""
-    for name in names:
-        try:
-            (out_dir / name).unlink(missing_ok=True)
-        except OSError as e:
-            raise OutputError(f"cannot replace: {e.strerror or e}", out_dir / name) from None
 
 
 # --------------------------------------------------------------------------- slicing and its spill

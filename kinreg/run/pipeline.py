@@ -6,7 +6,8 @@ Each stage keeps its results in the output folder's stage cache (:mod:`kinreg.ru
 A folder that holds results or a cache is refused, unless ``resume`` (re-use the cache: only
 stages whose inputs changed are done again, and the outputs are rewritten) or ``overwrite``
 (start afresh). A run killed at any point and resumed gives the same outputs as one that ran
-through.
+through. One run writes into a folder at a time, and its outputs appear there together at its
+end (the writer lock and the staged outputs of :mod:`kinreg.run.output_folder`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import dataclasses
 import logging
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,14 +55,12 @@ from kinreg.run.executor import ExecutorContext, make_executor
 from kinreg.run.output_folder import (
     CachedSlices,
     RunCache,
-    open_run_cache,
-    remove_outputs,
+    open_output_folder,
     sliced_run,
 )
 from kinreg.run.runs import (
     RunInputs,
     inputs_report,
-    output_files,
     run_correction,
     slicing_report,
     trajectory_plot,
@@ -222,58 +221,61 @@ OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "correc
                 "report.json", "report.html", "config.toml")
 
 
-def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False,
-                          outputs: tuple[str, ...] = OUTPUT_FILES) -> RunCache:
-    """Create the output folder and open its stage cache. A folder that already holds kinreg
-    results (any of ``outputs``) or a stage cache is refused unless ``resume`` (re-use the cache)
-    or ``overwrite`` (start afresh: the cache is cleared); see :func:`kinreg.run.output_folder.open_run_cache`."""
-    run = open_run_cache(out_dir, outputs, overwrite=overwrite, resume=resume)
-    check_writable_target(out_dir / "stations.csv", overwrite=True)
-    return run
+@contextlib.contextmanager
+def prepare_output_folder(out_dir: Path, overwrite: bool, resume: bool = False, n_runs: int = 1) -> Iterator[RunCache]:
+    """Create the output folder, hold its writer lock while the block runs, and open its stage
+    cache. A folder that another kinreg writes into, or that already holds kinreg results (any of
+    :data:`OUTPUT_FILES`) or a stage cache, is refused unless ``resume`` (re-use the cache) or
+    ``overwrite`` (start afresh: the cache is cleared); see
+    :func:`kinreg.run.output_folder.open_output_folder`."""
+    with open_output_folder(out_dir, OUTPUT_FILES, n_runs, overwrite=overwrite, resume=resume) as run:
+        check_writable_target(out_dir / "stations.csv", overwrite=True)
+        yield run
 
 
 def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, overwrite: bool = False,
             progress: Progress | None = None, workers: int | None = 1, scheduler: str | None = None,
             resume: bool = False) -> ProcessSummary:
     """``kinreg process``: read, slice, detect planes, link, adjust, correct, report (see the
-    module's docstring for ``workers``, ``scheduler``, ``resume`` and ``overwrite``)."""
-    progress, out, clock = progress or NullProgress(), Path(out_dir), StageClock()
-    runs, outputs = inputs.runs, output_files(out, OUTPUT_FILES, len(inputs.runs))  # runs: kinreg.run.runs
-    folder = prepare_output_folder(out, overwrite, resume, outputs)
-    references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
-    static = config.static if inputs.static is not None else None
-    trajectories = read_run_trajectories(runs, config.input, inputs.static)
-    with contextlib.ExitStack() as stack:
+    module's docstring for ``workers``, ``scheduler``, ``resume`` and ``overwrite``). The outputs
+    are written into the folder's staging folder and moved into place together at the end."""
+    progress, out, clock, runs = progress or NullProgress(), Path(out_dir), StageClock(), inputs.runs
+    with prepare_output_folder(out, overwrite, resume, len(runs)) as folder, contextlib.ExitStack() as stack:
+        references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
+        static = config.static if inputs.static is not None else None
+        trajectories = read_run_trajectories(runs, config.input, inputs.static)
         executor = stack.enter_context(make_executor(workers, scheduler))
         est, config = estimate_quasi_static(stack, folder, inputs, trajectories, references, config, progress,
-                                            executor, clock, out, outputs)
+                                            executor, clock)
         sliced, kinematic, stations, planes, adjusted = (est.sliced, est.kinematic, est.stations, est.planes,
                                                          est.adjusted)
         corrections = [run_correction(stations, adjusted.result, k, kinematic.trajectories[k], kinematic.jumps[k])
                        for k in range(len(runs))]
-        plan = plan_large_outputs(folder, out, outputs, runs, sliced, corrections, adjusted.result.poses, config,
-                                  references)
+        plan = plan_large_outputs(folder, runs, sliced, corrections, adjusted.result.poses, config, references)
         views = cloud_views_for_runs(config.report, [r.cloud for r in runs], kinematic.trajectories, references,
                                      inputs.static)
-        corrected = write_corrected_runs(out, runs, kinematic.trajectories, corrections, plan, folder, config,
+        staging = folder.start_outputs()  # every output goes here first
+        corrected = write_corrected_runs(staging, runs, kinematic.trajectories, corrections, plan, folder, config,
                                          references, progress, views)
         clock.lap("corrected cloud")
-        write_sequence(out, sliced, adjusted.result.poses, plan, folder, progress, views.crs.get("wkt", ""))
+        write_sequence(staging, sliced, adjusted.result.poses, plan, folder, progress, views.crs.get("wkt", ""))
         clock.lap("sequence E57")
-    report = build_report(
-        inputs=inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference),
-        config_toml=format_toml(config), network=adjusted.network, planes=planes,
-        n_candidate_pairs=len(station_pairs(stations, config.matching, static)), result=adjusted.result,
-        drift_rates=adjusted.rates, slicing=slicing_report([slices.summary for slices in sliced], config.slicing,
-                                                           est.smear_m, est.first_window_s),
-        corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
-        alpha=config.block.alpha, timings_s=clock.timings_s,
-        trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
-        cloud_views=views.finish(out))  # "cloud" (sections, plane thickness; PNGs in figures/) and "crs"
-    write_tables(out, report, adjusted.network, adjusted.result, planes)
-    clock.lap("reports")
-    write_report_json(out / "report.json", report)  # last: it marks a finished run
-    folder.finish()
+        stack.close()  # the workers and the spill are no longer needed
+        report = build_report(
+            inputs=inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference),
+            config_toml=format_toml(config), network=adjusted.network, planes=planes,
+            n_candidate_pairs=len(station_pairs(stations, config.matching, static)), result=adjusted.result,
+            drift_rates=adjusted.rates, slicing=slicing_report([slices.summary for slices in sliced], config.slicing,
+                                                               est.smear_m, est.first_window_s),
+            corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
+            alpha=config.block.alpha, timings_s=clock.timings_s,
+            trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
+            cloud_views=views.finish(out))  # "cloud" and "crs"; the PNGs go straight into out/figures
+        write_tables(staging, report, adjusted.network, adjusted.result, planes, figures_dir=out)
+        clock.lap("reports")
+        write_report_json(staging / "report.json", report)
+        folder.commit_outputs(keep=plan.current)  # all at once, report.json last: it marks a finished run
+        folder.finish()
     return ProcessSummary.from_report(out, report)
 
 
@@ -292,27 +294,25 @@ class EstimatedNetwork:
 
 def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                           trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
-                          progress: Progress, executor: ExecutorContext, clock: StageClock, out: Path,
-                          outputs: tuple[str, ...]) -> tuple[EstimatedNetwork, KinregConfig]:
+                          progress: Progress, executor: ExecutorContext,
+                          clock: StageClock) -> tuple[EstimatedNetwork, KinregConfig]:
     """:func:`estimate_network`; where the measured drift smears the planes of its windows
     (:func:`~kinreg.estimate.slicing.shorter_window_s`), once more with shorter windows. Returns
     the result and the configuration it was made with."""
-    est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock, out,
-                           outputs)
+    est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock)
     window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing)
     if window is None:
         return est, config
     log.warning("the drift smears the planes by %.1f mm over half a window (median): sliced again with %.1f s "
                 "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), window, config.slicing.window_s)
     again = estimate_network(stack, folder, inputs, trajectories, references, with_window(config, window), progress,
-                             executor, clock, out, outputs)
+                             executor, clock)
     return dataclasses.replace(again, first_window_s=config.slicing.window_s), with_window(config, window)
 
 
 def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                      trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
-                     progress: Progress, executor: ExecutorContext, clock: StageClock, out: Path,
-                     outputs: tuple[str, ...]) -> EstimatedNetwork:
+                     progress: Progress, executor: ExecutorContext, clock: StageClock) -> EstimatedNetwork:
     """Slice every run (its spill kept open on ``stack``), detect planes (and the static scans'),
     link and adjust: the stages of :func:`process` before the outputs, each through the stage cache."""
     runs, static = inputs.runs, config.static if inputs.static is not None else None
@@ -327,7 +327,7 @@ def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: Proc
     links = link_stations_cached(stations, planes, config, static, progress, executor, folder)
     clock.lap("link")
     network = build_network(stations, planes, links, references, static, config)
-    adjusted = adjust_or_fail(network, planes, static, config, progress, executor, out, outputs,
+    adjusted = adjust_or_fail(network, planes, static, config, progress, executor, folder,
                               inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference))
     folder.count("block", computed=1)
     clock.lap("block")
@@ -341,34 +341,37 @@ def with_window(config: KinregConfig, window_s: float) -> KinregConfig:
 
 
 def adjust_or_fail(network: Network, planes: list[tuple[Plane, ...]], static: StaticConfig | None,
-                   config: KinregConfig, progress: Progress, executor: ExecutorContext, out: Path,
-                   outputs: tuple[str, ...], report_inputs: dict[str, Any]) -> AdjustedNetwork:
+                   config: KinregConfig, progress: Progress, executor: ExecutorContext, folder: RunCache,
+                   report_inputs: dict[str, Any]) -> AdjustedNetwork:
     """:func:`~kinreg.run.stages.adjust_with_measured_drift`; when the adjustment fails, the
     folder's outputs (of an earlier run too) are removed, and with ``[block] on_failure =
-    "report"`` a ``report.json`` and ``report.html`` marked failed are written before the error."""
+    "report"`` a ``report.json`` and ``report.html`` marked failed take their place."""
     try:
         return adjust_with_measured_drift(network, planes, static, config, progress, executor)
     except AdjustmentFailedError as e:
-        remove_outputs(out, outputs)
-        shutil.rmtree(out / FIGURES_DIR, ignore_errors=True)  # the report's images of an earlier run
+        if config.block.on_failure is OnFailure.REPORT:
+            staging = folder.start_outputs()
+            report = build_failure_report(inputs=report_inputs, config_toml=format_toml(config), result=e.result,
+                                          datum=network.datum.description, alpha=config.block.alpha)
+            write_text(staging / "report.html", render_html(report))
+            write_report_json(staging / "report.json", report)
+        folder.commit_outputs()
+        shutil.rmtree(folder.out_dir / FIGURES_DIR, ignore_errors=True)  # the report's images of an earlier run
         if config.block.on_failure is not OnFailure.REPORT:
             raise
-        report = build_failure_report(inputs=report_inputs, config_toml=format_toml(config), result=e.result,
-                                      datum=network.datum.description, alpha=config.block.alpha)
-        write_text(out / "report.html", render_html(report))
-        write_report_json(out / "report.json", report)
-        raise AdjustmentFailedError(e.reason.replace("nothing was written", f"report.json in {out} is marked "
-                                                     "failed, nothing else was written"), e.result) from None
+        raise AdjustmentFailedError(e.reason.replace("nothing was written", f"report.json in {folder.out_dir} is "
+                                                     "marked failed, nothing else was written"), e.result) from None
 
 
 def write_tables(out: Path, report: dict[str, Any], network: Network, result: BlockResult,
-                 planes: Sequence[tuple[Plane, ...]]) -> None:
-    """``stations.csv``, ``links.csv``, ``config.toml`` and ``report.html`` (``report.json`` is written last)."""
+                 planes: Sequence[tuple[Plane, ...]], figures_dir: Path | None = None) -> None:
+    """``stations.csv``, ``links.csv``, ``config.toml`` and ``report.html`` (``report.json`` is
+    written last); the report's images are read from ``figures_dir`` (default ``out``)."""
     rows = stations_table(network.stations, result, planes, network.links)
     write_text(out / "stations.csv", format_stations_csv(rows))
     write_text(out / "links.csv", format_links_csv(links_table(network.links, result)))
     write_text(out / "config.toml", report["config_toml"])
-    write_text(out / "report.html", render_html(report, base_dir=out))
+    write_text(out / "report.html", render_html(report, base_dir=figures_dir or out))
 
 
 @dataclass(frozen=True)

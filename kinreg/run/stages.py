@@ -42,7 +42,7 @@ from kinreg.progress import NullProgress, Progress
 from kinreg.run.codecs import links_from_arrays, links_to_arrays, scan_planes_from_arrays, scan_planes_to_arrays
 from kinreg.run.corrected_cloud import PointObserver, write_corrected_las
 from kinreg.run.executor import ExecutorContext, in_process, parallel_map
-from kinreg.run.output_folder import CachedSlices, RunCache, content_parts, dataclass_parts, remove_outputs
+from kinreg.run.output_folder import CachedSlices, RunCache, content_parts, dataclass_parts
 from kinreg.run.runs import RunInputs, adjusted_scans, label_run, run_output_names
 from kinreg.run.spill import QuasiStaticSequence
 from kinreg.types import (
@@ -378,11 +378,11 @@ class LargeOutputs:
     current: frozenset[str]
 
 
-def plan_large_outputs(run: RunCache, out: Path, outputs: tuple[str, ...], runs: Sequence[RunInputs],
-                       sliced: Sequence[CachedSlices], corrections: Sequence[DriftCorrection], poses: Pose,
-                       config: KinregConfig, references: ReferencePlanes | None) -> LargeOutputs:
-    """Key the large outputs and remove every output of the folder that is not current (all but
-    the current large ones are written again)."""
+def plan_large_outputs(run: RunCache, runs: Sequence[RunInputs], sliced: Sequence[CachedSlices],
+                       corrections: Sequence[DriftCorrection], poses: Pose, config: KinregConfig,
+                       references: ReferencePlanes | None) -> LargeOutputs:
+    """Key the large outputs and find which of them in the folder are still current (all but
+    those are written again; the folder's others are replaced when the run commits its outputs)."""
     T_obj_cloud = None if references is None else references.T_ref_traj
     keys = {}
     for k, (r, correction) in enumerate(zip(runs, corrections, strict=True)):
@@ -393,7 +393,6 @@ def plan_large_outputs(run: RunCache, out: Path, outputs: tuple[str, ...], runs:
     keys["sequence.e57"] = run.key("output", "sequence.e57", *(slices.key for slices in sliced),
                                    poses[np.arange(n_scans)])
     current = frozenset(name for name, key in keys.items() if run.output_is_current(name, key))
-    remove_outputs(out, tuple(name for name in outputs if name not in current))
     return LargeOutputs(keys, current)
 
 
