@@ -105,9 +105,9 @@ class DriftCorrection:
         if len(t) == 0:
             return np.array(xyz, dtype=np.float64, copy=True)
         lo, hi = float(t.min()), float(t.max())
-        grid = lo + POINT_GRID_S * np.arange(int(np.ceil((hi - lo) / POINT_GRID_S)) + 2)
+        nodes = lo + POINT_GRID_S * np.arange(int(np.ceil((hi - lo) / POINT_GRID_S)) + 2)
         # the first and last station are nodes too: the correction is held constant beyond them
-        grid = np.union1d(grid, self.stamps_s[[0, -1]]).astype(np.float64)
+        grid: FloatArray = np.union1d(nodes, self.stamps_s[[0, -1]]).astype(np.float64)
         rotvec, delta, pivot = self._at(grid)
         A = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix - np.eye(3)
         origin = pivot[0]  # interpolated relative to it: UTM-sized values keep their precision
