@@ -26,6 +26,7 @@ from pye57 import libe57
 from test_resume import outputs
 
 from kinreg.config import load_config
+from kinreg.report.cloud_views import FIGURES_DIR
 from kinreg.run import output_folder
 from kinreg.run.output_folder import CACHE_FOLDER, LOCK_FILE, STAGING_FOLDER, output_folder_lock
 from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
@@ -114,7 +115,7 @@ def test_a_second_run_is_refused_while_the_first_writes_and_the_first_is_not_dis
         first.kill()
         first.wait()
     assert outputs(out) == outputs(run / "reference")
-    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER}  # the lock went with the run
+    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER, FIGURES_DIR}  # the lock went with the run
 
 
 def test_of_two_runs_started_together_one_runs_and_the_other_is_refused(run: Path, tmp_path: Path) -> None:
@@ -314,4 +315,4 @@ def test_a_run_killed_while_moving_its_outputs_in_is_completed_by_the_next(
     summary = process(inputs(run), out, load_config(run / "kinreg.toml"), resume=True)
     assert summary.stage_cache["corrected cloud"] == {"reused": 1, "computed": 0}
     assert outputs(out) == outputs(run / "reference") != earlier
-    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER}
+    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER, FIGURES_DIR}

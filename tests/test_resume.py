@@ -23,6 +23,7 @@ import pytest
 from kinreg_cli.main import main
 
 from kinreg.config import load_config
+from kinreg.report.cloud_views import FIGURES_DIR
 from kinreg.run.output_folder import CACHE_FOLDER
 from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
 from kinreg.simulation.files import write_run
@@ -187,7 +188,7 @@ def test_a_run_killed_twice_and_resumed_gives_the_outputs_of_an_uninterrupted_ru
     }
     assert outputs(out) == outputs(run / "reference")
     assert not [p for p in out.iterdir() if ".tmp-" in p.name]  # the killed runs' temporaries are gone
-    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER}  # no staging folder, no lock
+    assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER, FIGURES_DIR}  # no staging, no lock
     assert not list((run / "spill").iterdir())
 
 

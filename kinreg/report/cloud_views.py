@@ -40,6 +40,7 @@ from kinreg.io.atomic import atomic_path
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.crs import describe_crs
 from kinreg.report.deviations import Deviations, StaticPlanes
+from kinreg.report.json import _clean
 from kinreg.report.raster import (
     WHITE,
     Image,
@@ -264,17 +265,6 @@ def _previous(figures: Path, crs: dict[str, Any]) -> dict[str, Any]:
         return {"cloud": result["cloud"], "crs": crs}
     return {"crs": crs}
 
-
-def _clean(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if isinstance(value, np.generic):
-        return _clean(value.item())
-    return value
 
 
 def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajectories: Sequence[Trajectory],

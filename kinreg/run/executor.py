@@ -63,6 +63,7 @@ from typing import Any, TypeVar
 
 from kinreg.errors import ConfigError
 from kinreg.progress import NullProgress, Progress
+from kinreg.run.stage_cache import process_alive
 
 log = logging.getLogger(__name__)
 
@@ -95,19 +96,10 @@ def die_with_parent(sig: signal.Signals = signal.SIGTERM, ancestor_pid: int | No
     except (OSError, AttributeError):  # no libc with prctl
         return False
     # The parent may have ended before the request: then no signal will come.
-    if os.getppid() != parent or (ancestor_pid is not None and not _alive(ancestor_pid)):
+    if os.getppid() != parent or (ancestor_pid is not None and not process_alive(ancestor_pid)):
         os.kill(os.getpid(), sig)
     return True
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def start_worker(caller_pid: int) -> None:
