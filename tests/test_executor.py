@@ -163,3 +163,14 @@ def test_each_worker_uses_one_blas_and_openmp_thread_and_this_process_is_left_al
     assert thread_settings(0) == before  # the calling process keeps its settings (in-process runs)
     if before["blas"] is not None:
         assert in_workers[0]["blas"] == 1
+
+
+def test_the_forkserver_preload_does_not_load_numpy_before_it_limits_the_threads():
+    # BLAS reads its thread count when numpy loads: kinreg.run._worker_threads must set the
+    # environment first, so nothing the executor imports may load numpy.
+    import subprocess
+    import sys
+
+    code = "import sys, kinreg.run.executor; print('numpy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -63,7 +63,7 @@ from typing import Any, TypeVar
 
 from kinreg.errors import ConfigError
 from kinreg.progress import NullProgress, Progress
-from kinreg.run.stage_cache import process_alive
+from kinreg.run.liveness import process_alive
 
 log = logging.getLogger(__name__)
 

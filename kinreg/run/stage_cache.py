@@ -47,6 +47,7 @@ import numpy as np
 
 import kinreg
 from kinreg.errors import OutputError
+from kinreg.run.liveness import process_alive
 
 log = logging.getLogger(__name__)
 
@@ -173,15 +174,6 @@ class StageCache:
                 else:
                     path.unlink(missing_ok=True)
 
-
-def process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 @contextmanager
