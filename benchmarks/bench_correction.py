@@ -2,10 +2,14 @@
 sample trajectory with random station corrections. ``python benchmarks/bench_correction.py ref``
 keeps the result as the reference in /tmp; a later run prints its difference from it (mm)."""
 
-import time, numpy as np
-from kinreg.io.trajectory import read_trajectory
+import time
+
+import numpy as np
+
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose, rotvec_to_quat
+from kinreg.io.trajectory import read_trajectory
+
 traj = read_trajectory("sample_data/run_trajectory.txt")
 rng = np.random.default_rng(0)
 ts = np.linspace(traj.t_start_s + 3, traj.t_end_s - 3, 40)
