@@ -1,8 +1,15 @@
 """Time of the per-point drift correction (``DriftCorrection.apply_to_points``) on 2 M points of the
-sample trajectory with random station corrections. ``python benchmarks/bench_correction.py ref``
-keeps the result as the reference in /tmp; a later run prints its difference from it (mm)."""
+sample trajectory with random station corrections.
 
+Usage: python benchmarks/bench_correction.py ref   # keep this code's result as the reference
+       python benchmarks/bench_correction.py       # time, and the largest difference from it [mm]
+"""
+
+from __future__ import annotations
+
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -10,18 +17,28 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.io.trajectory import read_trajectory
 
-traj = read_trajectory("sample_data/run_trajectory.txt")
-rng = np.random.default_rng(0)
-ts = np.linspace(traj.t_start_s + 3, traj.t_end_s - 3, 40)
-init = traj.pose_at(ts)
-adj = Pose(rotvec_to_quat(rng.normal(0, 0.003, (40, 3))), rng.normal(0, 0.05, (40, 3))).compose(init)
-c = DriftCorrection.from_stations(ts, init, adj, traj)
-n = 2_000_000
-t = np.sort(rng.uniform(traj.t_start_s, traj.t_end_s, n))
-xyz = traj.pose_at(t).t_xyz + rng.normal(0, 8, (n, 3)) + np.array([500000.0, 5400000.0, 300.0]) * 0
-t0 = time.perf_counter(); a = c.apply_to_points(xyz, t); t1 = time.perf_counter()
-print("apply_to_points %.3f s for %d points" % (t1 - t0, n))
-np.save("/tmp/corr_ref.npy", a) if __import__("sys").argv[-1] == "ref" else print("max diff mm", np.abs(a - np.load("/tmp/corr_ref.npy")).max() * 1000)
-ref = np.load("/tmp/corr_ref.npy"); e = np.abs(a - ref).max(axis=1); k = int(np.argmax(e))
-print("worst at t-rel", t[k] - traj.t_start_s, "stations", ts[0] - traj.t_start_s, ts[-1] - traj.t_start_s, "dist", np.linalg.norm(xyz[k] - traj.pose_at(t[k]).t_xyz))
-print("p99 diff mm", np.percentile(e, 99) * 1000)
+REPO = Path(__file__).resolve().parents[1]
+REFERENCE = Path("/tmp/kinreg_correction_reference.npy")
+
+
+def main() -> None:
+    traj = read_trajectory(REPO / "sample_data" / "run_trajectory.txt")
+    rng = np.random.default_rng(0)
+    ts = np.linspace(traj.t_start_s + 3, traj.t_end_s - 3, 40)
+    initial = traj.pose_at(ts)
+    adjusted = Pose(rotvec_to_quat(rng.normal(0, 0.003, (40, 3))), rng.normal(0, 0.05, (40, 3))).compose(initial)
+    correction = DriftCorrection.from_stations(ts, initial, adjusted, traj)
+    n = 2_000_000
+    t = np.sort(rng.uniform(traj.t_start_s, traj.t_end_s, n))
+    xyz = traj.pose_at(t).t_xyz + rng.normal(0, 8, (n, 3))
+    start = time.perf_counter()
+    corrected = correction.apply_to_points(xyz, t)
+    print(f"apply_to_points: {time.perf_counter() - start:.3f} s for {n:,} points")
+    if sys.argv[-1] == "ref":
+        np.save(REFERENCE, corrected)
+    elif REFERENCE.exists():
+        print(f"largest difference from the reference: {np.abs(corrected - np.load(REFERENCE)).max() * 1000:.4f} mm")
+
+
+if __name__ == "__main__":
+    main()
