@@ -120,6 +120,7 @@ def _section_inputs(report: dict[str, Any]) -> str:
         ("duration", _duration(inputs.get("duration_s"))),
         ("path length", _fmt(inputs.get("path_length_m"), 1, "m")),
         ("quasi-static scans", _count(slicing.get("n_scans"))),
+        ("window", _window_text(slicing)),
         ("skipped windows", _count(len(slicing.get("skipped_windows") or []))),
         ("points outside trajectory", _count(slicing.get("n_points_outside_trajectory"))),
         ("coordinate system", _crs_text(_get(report, "crs", default={}))),
@@ -132,6 +133,15 @@ def _crs_text(crs: Any) -> str:
         return "not declared"
     epsg = crs.get("epsg")
     return f"{crs.get('name') or DASH}" + (f" (EPSG:{epsg})" if epsg else "")
+
+
+def _window_text(slicing: dict[str, Any]) -> str:
+    """The window length, the first one where the drift made kinreg slice again, and the smear."""
+    text = _fmt(slicing.get("window_s"), 1, "s")
+    if slicing.get("window_s_first") is not None:
+        text += f" (sliced again: {_fmt(slicing.get('window_s_first'), 1, 's')} smeared the planes)"
+    smear = (slicing.get("smear_mm") or {}).get("median")
+    return text if smear is None else f"{text}, drift over half a window {_fmt(smear, 1, 'mm')}"
 
 
 def _verdict(report: dict[str, Any]) -> str:
