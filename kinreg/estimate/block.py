@@ -10,8 +10,9 @@ and direct observations of station poses. Gauss-Newton on SE(3) with a sparse no
 
 After convergence: the a-posteriori standard deviation of unit weight and the global test,
 per-observation test statistics and redundancy numbers from the 6x6 blocks of the inverse
-(selected inversion: the inverse is never formed densely), data snooping (the worst observation
-above the critical value is removed and the network re-adjusted), and optionally a variance
+(selected inversion: the inverse is never formed densely), data snooping of the links and station
+observations (the worst observation above the critical value is removed and the network
+re-adjusted; the trajectory's links are tested but never removed), and optionally a variance
 component per observation kind so that reported standard deviations follow the residuals.
 """
 
@@ -180,7 +181,12 @@ def adjust_block(
                 start = poses
                 continue
         budget = config.max_rejections - len(rejected_order)
-        candidates = [t for t in tests if t.index not in protected]
+        # The trajectory's own links are not snooped: its gross errors (jumps) are found in the
+        # trajectory itself (kinreg.estimate.jumps), and a link that does not fit says that the
+        # drift model is off, which the variance components answer. Rejecting it would leave the
+        # direction it carries to the planes, which may not fix it (a corridor): the walks of the
+        # accuracy matrix lost alternate links there and drifted by 10-20 mm.
+        candidates = [t for t in tests if t.index not in protected and t.kind is not ObservationKind.TRAJECTORY]
         worst = _worst_outliers(candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
         if worst:
             for t in worst:
