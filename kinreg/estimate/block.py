@@ -152,8 +152,8 @@ def adjust_block(
         try:
             if last_round:
                 _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
-            poses, iterations, factor, N, free_index, converged = _gauss_newton(start, observations, active, fixed,
-                                                                                  weights, config, progress)
+            poses, iterations, factor, N, free_index, converged = _levenberg_marquardt(
+                start, observations, active, fixed, weights, config, progress)
             tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed,
                                                                       free_index, weights, factor, N, config)
         except EstimationError:
@@ -304,7 +304,7 @@ _FIRST_DAMPING = 1e-4
 _MAX_DAMPING = 1e8
 
 
-def _gauss_newton(poses_initial, observations, active, fixed, weights, config, progress):
+def _levenberg_marquardt(poses_initial, observations, active, fixed, weights, config, progress):
     """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3). Converged when no unknown changes by
     more than ``config.convergence`` or the cost falls by less than ``config.cost_tolerance`` of
     itself; returns the poses, the iterations, the factor and normal matrix of the undamped

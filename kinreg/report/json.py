@@ -82,8 +82,8 @@ def build_report(
     """The content of ``report.json``: ``jumps`` and ``corrections`` one per run, ``timings_s``
     the stage timings (the dictionary itself: a stage timed after this call still shows)."""
     stations, links, datum = network.stations, network.links, network.datum.description
-    correction_mm = np.concatenate([c.magnitude()[0] for c in corrections]) * 1000.0
-    correction_mdeg = np.degrees(np.concatenate([c.magnitude()[1] for c in corrections])) * 1000.0
+    shift_m, rotation_rad = (np.concatenate(parts) for parts in zip(*(c.magnitude() for c in corrections), strict=True))
+    correction_mm, correction_mdeg = shift_m * 1000.0, np.degrees(rotation_rad) * 1000.0
     rows = stations_table(stations, result, planes, links)
     free = ~result.fixed
     quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])

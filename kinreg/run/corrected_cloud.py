@@ -72,8 +72,9 @@ def write_corrected_las(
                             laz_backend=_laz_backend() if compress else None) as writer:
                 for points in _chunks(reader, chunk_points, source):
                     t = np.asarray(points.gps_time, dtype=np.float64) + time_offset_s
-                    if not np.isfinite(t).all():
-                        points, t = points[np.isfinite(t)], t[np.isfinite(t)]
+                    finite = np.isfinite(t)
+                    if not finite.all():
+                        points, t = points[finite], t[finite]
                     xyz = np.column_stack([points.x, points.y, points.z]).astype(np.float64)
                     if T_obj_cloud is not None:
                         xyz = T_obj_cloud.apply(xyz)

@@ -185,10 +185,12 @@ def adjust_with_measured_drift(
     progress: Progress,
     executor: ExecutorContext | None = None,
 ) -> AdjustedNetwork:
-    """The block adjustment of ``network``, twice: the first adjustment also measures the drift;
-    where it is faster than the prior, the pairs are linked again (on ``executor``), and the
-    network is adjusted again with the measured rates, so that the planes' window deformation and
-    the stretches carried by the trajectory alone get honest sigmas."""
+    """The block adjustment of ``network`` with the drift it measures: the first adjustment measures
+    the drift rates and the coupling (:func:`~kinreg.estimate.drift.estimate_drift_rates`); the pairs
+    are then linked again from the adjusted poses (on ``executor``) and the network adjusted again,
+    until the linked pairs no longer change (``[block] max_relink_rounds``); a last pass forms the
+    trajectory's links with the final rates and coupling, so that the planes' window deformation
+    and the stretches carried by the trajectory alone get honest sigmas."""
     prior_rates = DriftRates.from_config(config.drift)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
@@ -267,19 +269,18 @@ def link_stations(
     Returns the links in pair order, whatever the number of workers.
     """
     progress = progress or NullProgress()
+    rates = rates or DriftRates.from_config(drift)
     sigmas = None
     initial = stations
     if adjusted is not None:
         stations = [replace(s, T_obj_scan=adjusted.poses[k]) for k, s in enumerate(stations)]
-        floor = pose_sigmas((rates or DriftRates.from_config(drift)).pos_floor_m,
-                            (rates or DriftRates.from_config(drift)).rot_floor_rad)
+        floor = pose_sigmas(rates.pos_floor_m, rates.rot_floor_rad)
         own = np.sqrt(np.maximum(np.diagonal(adjusted.cov_xi, axis1=1, axis2=2), 0.0))
         sigmas = 2.0 * np.hypot(own, floor / np.sqrt(2.0))
     pairs = station_pairs(stations, matching, static)
     kept = _unmoved_links(previous, pairs, initial, stations, matching) if adjusted is not None else {}
     todo = [pair for pair in pairs if pair not in kept]
     # Once per station, not once per pair: matching does not look at the covariances.
-    rates = rates or DriftRates.from_config(drift)
     planes = [with_window_deformation(p, s.T_obj_scan, rates) for s, p in zip(stations, planes, strict=True)]
     configs = (matching, drift, pairwise, static)
     batches = [todo[k:k + _PAIRS_PER_TASK] for k in range(0, len(todo), _PAIRS_PER_TASK)]
