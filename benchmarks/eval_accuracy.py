@@ -178,6 +178,7 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         for block in run.iter_cloud_blocks():
             yield block, block.xyz_obj
 
+    drift = json.loads((workdir / "out" / "report.json").read_text())["adjustment"]["drift_rates"]
     rms_corrected = point_to_plane_rms(run, corrected())
     rms_truth = point_to_plane_rms(run, with_truth())
     rms_input = point_to_plane_rms(run, drifted())
@@ -187,6 +188,7 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         "stations": len(adj),
         "links": summary.n_links,
         "sigma0": summary.sigma0,
+        "drift_rates": drift,
         "global_test_passed": summary.global_test_passed,
         "position_error_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_fit**2))), "max": float(err_fit.max())},
         "position_error_input_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_initial_fit**2))),

@@ -112,6 +112,10 @@ class DriftConfig:
     sigma_rot_floor_deg: float = 0.01
     sigma_rot_deg_per_s: float = 0.003
     measured_rate_floor: float = 0.25
+    # Measure how long the drift velocity stays alike (its correlation time) and carry it as an
+    # unknown per trajectory link (kinreg.estimate.drift.drift_observation); false: the links'
+    # drift is taken as independent from one link to the next.
+    measure_correlation: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -249,6 +249,7 @@ class ObservationKind(enum.Enum):
     PLANES = "planes"  # plane-only information of a pairwise link
     TRAJECTORY = "trajectory"  # the trajectory's relative pose between consecutive stations
     STATION = "station"  # a direct observation of one station's pose (static scans with sigmas)
+    DRIFT = "drift"  # how the trajectory's drift velocity changes from one link to the next
 
 
 @dataclass(frozen=True, eq=False)
@@ -256,7 +257,15 @@ class RelativeObservation:
     """One observation of the block adjustment: the relative pose ``T_i_j`` of stations i and j
     (or, for ``STATION``, the pose ``T_obj_i`` itself; ``j`` is then -1) with its 6x6 information
     matrix in the right-perturbation twist convention (``T = Z.compose(Pose.exp(e))``), possibly
-    rank deficient."""
+    rank deficient.
+
+    The trajectory's drift velocity (METHOD.md section 2): where the block has a drift velocity
+    ``v`` for the trajectory link that starts at station i (6 values in object axes, the
+    translation part at the station: the rate of the trajectory's error), a ``TRAJECTORY``
+    observation over ``dt_s`` seconds predicts ``T_i^-1 T_j = Z exp(dt_s S_j v)`` (``S_j`` turns
+    object axes into station j's). A ``DRIFT`` observation ties the velocity of the link from j
+    to that of the link from i, ``v_j - decay v_i ~ N(0, info^-1)`` (``decay`` per axis) (first-order Gauss-Markov), or
+    with ``j = -1`` observes ``v_i ~ N(0, info^-1)`` (its stationary spread); ``Z`` is unused."""
 
     kind: ObservationKind
     i: int
@@ -264,6 +273,8 @@ class RelativeObservation:
     Z: Pose
     info: FloatArray
     rank: int
+    dt_s: float = 0.0
+    decay: float | FloatArray = 0.0  # per axis where an array (6,)
 
 
 @dataclass(frozen=True)

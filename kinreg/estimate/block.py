@@ -45,61 +45,139 @@ def adjoint(T: Pose) -> FloatArray:
     return A
 
 
-def _residuals(poses: Pose, obs_i: np.ndarray, obs_j: np.ndarray, Z: Pose, station: np.ndarray) -> FloatArray:
-    """e = log(Z^-1 T_i^-1 T_j) for relative observations, log(Z^-1 T_i) for station ones."""
-    T_i = poses[obs_i]
-    rel = T_i.inverse().compose(poses[np.where(station, obs_i, obs_j)])
-    rel = Pose(np.where(station[:, None], T_i.quat_wxyz, rel.quat_wxyz),
-               np.where(station[:, None], T_i.t_xyz, rel.t_xyz))
-    return Z.inverse().compose(rel).log()
+@dataclasses.dataclass(frozen=True)
+class _Active:
+    """The active observations as arrays. Unknowns are numbered as nodes: the stations 0..n-1
+    (poses on SE(3)), then the drift velocities n..n+m-1 (6-vectors, one per trajectory link
+    that has one). ``nodes`` (k, 3): per observation its nodes in slot order (-1: none): pose
+    observations (first station, second station, drift velocity), drift observations (velocity
+    of the first link, of the second)."""
+
+    idx: np.ndarray
+    kinds: np.ndarray
+    nodes: np.ndarray
+    pose: np.ndarray  # PLANES, TRAJECTORY, STATION
+    station: np.ndarray  # STATION
+    Z: Pose
+    P: FloatArray
+    dt: np.ndarray
+    decay: np.ndarray  # (k, 6)
 
 
-def _jacobians(poses: Pose, obs_i: np.ndarray, obs_j: np.ndarray, station: np.ndarray) -> tuple[FloatArray, FloatArray]:
-    """de/dx_i and de/dx_j (k, 6, 6), to first order in the residual."""
-    rel = poses[obs_i].inverse().compose(poses[np.where(station, obs_i, obs_j)])
-    J_i = -adjoint(rel.inverse())
-    J_j = np.broadcast_to(np.eye(6), J_i.shape).copy()
-    J_i[station] = np.eye(6)
-    J_j[station] = 0.0
-    return J_i, J_j
+def velocity_nodes(observations: list[RelativeObservation], n: int) -> np.ndarray:
+    """Per station: the node of the drift velocity of the trajectory link starting there (-1:
+    none). A link has one where ``DRIFT`` observations name it (:class:`RelativeObservation`)."""
+    keys = sorted({o.i for o in observations if o.kind is ObservationKind.DRIFT}
+                  | {o.j for o in observations if o.kind is ObservationKind.DRIFT and o.j >= 0})
+    node = -np.ones(n, dtype=int)
+    node[np.array(keys, dtype=int)] = n + np.arange(len(keys))
+    return node
 
 
-def _assemble(n_free: int, col_i: np.ndarray, col_j: np.ndarray, J_i: FloatArray, J_j: FloatArray,
-              P: FloatArray, e: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
+def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: np.ndarray,
+            weights: dict[str, float]) -> _Active:
+    idx = np.flatnonzero(active)
+    obs = [observations[k] for k in idx]
+    kinds = np.array([o.kind.value for o in obs])
+    drift = kinds == ObservationKind.DRIFT.value
+    station = kinds == ObservationKind.STATION.value
+    i = np.array([o.i for o in obs], dtype=int)
+    j = np.array([o.j for o in obs], dtype=int)
+    nodes = -np.ones((len(obs), 3), dtype=int)
+    pose = ~drift
+    nodes[pose, 0] = i[pose]
+    nodes[pose & ~station, 1] = j[pose & ~station]
+    trajectory = kinds == ObservationKind.TRAJECTORY.value
+    nodes[trajectory, 2] = vnode[i[trajectory]]
+    nodes[drift, 0] = vnode[i[drift]]
+    nodes[drift, 1] = np.where(j[drift] >= 0, vnode[np.maximum(j[drift], 0)], -1)
+    P = np.stack([o.info for o in obs]) * np.array([weights[k] for k in kinds])[:, None, None]
+    return _Active(idx, kinds, nodes, pose, station, Pose.stack([o.Z for o in obs]), P,
+                   np.array([o.dt_s for o in obs]), np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6))
+
+
+def _to_station_axes(R: FloatArray) -> FloatArray:
+    """``S`` (k, 6, 6): a twist in object axes into the axes of the stations with rotations R."""
+    S = np.zeros((len(R), 6, 6))
+    S[:, :3, :3] = np.transpose(R, (0, 2, 1))
+    S[:, 3:, 3:] = S[:, :3, :3]
+    return S
+
+
+def _linearise(poses: Pose, velocity: FloatArray, a: _Active, jacobians: bool = True):
+    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6) to first order
+    in the residual. Pose observations: ``e = log(Z^-1 T_i^-1 T_j) - dt S_j v`` (``log(Z^-1 T_i)``
+    for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``)."""
+    k = len(a.idx)
+    e = np.zeros((k, 6))
+    J = np.zeros((k, 3, 6, 6)) if jacobians else None
+    p = np.flatnonzero(a.pose)
+    if len(p):
+        st = a.station[p]
+        i = a.nodes[p, 0]
+        j = np.where(st, i, a.nodes[p, 1])
+        T_i = poses[i]
+        rel = T_i.inverse().compose(poses[j])
+        rel = Pose(np.where(st[:, None], T_i.quat_wxyz, rel.quat_wxyz), np.where(st[:, None], T_i.t_xyz, rel.t_xyz))
+        e[p] = a.Z[p].inverse().compose(rel).log()
+        v = a.nodes[p, 2]
+        has_v = np.flatnonzero(v >= 0)
+        S = None
+        if len(has_v):
+            S = -a.dt[p[has_v], None, None] * _to_station_axes(poses[j[has_v]].rotation_matrix)
+            e[p[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
+        if jacobians:
+            J_i = -adjoint(rel.inverse())
+            J_i[st] = np.eye(6)
+            J_j = np.broadcast_to(np.eye(6), J_i.shape).copy()
+            J_j[st] = 0.0
+            J[p, 0], J[p, 1] = J_i, J_j
+            if S is not None:
+                J[p[has_v], 2] = S  # S_j's own dependence on T_j is of the order dt |v| and left out
+    d = np.flatnonzero(~a.pose)
+    if len(d):
+        n = len(poses)
+        first, second = a.nodes[d, 0] - n, a.nodes[d, 1] - n
+        pair = a.nodes[d, 1] >= 0
+        decay = np.where(pair[:, None], a.decay[d], -1.0)  # a prior (no second link): e = v_i
+        e[d] = np.where(pair[:, None], velocity[np.where(pair, second, 0)], 0.0) - decay * velocity[first]
+        if jacobians:
+            J[d, 0] = -decay[:, :, None] * np.eye(6)
+            J[d[pair], 1] = np.eye(6)
+    return e, J
+
+
+def _cost(poses: Pose, velocity: FloatArray, a: _Active) -> float:
+    """The weighted sum of squared residuals ``sum e^T P e``."""
+    e, _ = _linearise(poses, velocity, a, jacobians=False)
+    return float(np.einsum("ki,kij,kj->", e, a.P, e))
+
+
+def _assemble(n_free: int, cols: np.ndarray, J: FloatArray, P: FloatArray, e: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
     """Normal matrix (6 n_free square, sparse) and right-hand side from per-observation blocks.
 
-    ``col_i``/``col_j`` are the unknown-block indices of the observation's stations (-1: fixed
-    or absent). Vectorised COO assembly; duplicates are summed by the sparse constructor.
-    """
-    JiT_P = np.transpose(J_i, (0, 2, 1)) @ P
-    JjT_P = np.transpose(J_j, (0, 2, 1)) @ P
-    blocks_ii = JiT_P @ J_i
-    blocks_jj = JjT_P @ J_j
-    blocks_ij = JiT_P @ J_j
-    g_i = (JiT_P @ e[:, :, None])[:, :, 0]
-    g_j = (JjT_P @ e[:, :, None])[:, :, 0]
-    rows, cols, vals = [], [], []
+    ``cols`` (k, slots) are the unknown-block indices of each observation's nodes (-1: fixed or
+    absent), ``J`` (k, slots, 6, 6) its Jacobians. Vectorised COO assembly; duplicates are summed
+    by the sparse constructor."""
+    JT_P = np.transpose(J, (0, 1, 3, 2)) @ P[:, None]
+    rows, columns, vals = [], [], []
     r6 = np.arange(6)
-
-    def put(bi: np.ndarray, bj: np.ndarray, blocks: FloatArray) -> None:
-        ok = (bi >= 0) & (bj >= 0)
-        if not ok.any():
-            return
-        bi, bj, blocks = bi[ok], bj[ok], blocks[ok]
-        rows.append((6 * bi[:, None, None] + r6[None, :, None]).repeat(6, axis=2).ravel())
-        cols.append((6 * bj[:, None, None] + r6[None, None, :]).repeat(6, axis=1).ravel())
-        vals.append(blocks.ravel())
-
-    put(col_i, col_i, blocks_ii)
-    put(col_j, col_j, blocks_jj)
-    put(col_i, col_j, blocks_ij)
-    put(col_j, col_i, np.transpose(blocks_ij, (0, 2, 1)))
     size = 6 * n_free
-    N = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(size, size))
     b = np.zeros(size)
-    for bi, g in ((col_i, g_i), (col_j, g_j)):
-        ok = bi >= 0
-        np.add.at(b, (6 * bi[ok, None] + r6[None, :]).ravel(), -g[ok].ravel())
+    slots = cols.shape[1]
+    for s in range(slots):
+        for t in range(slots):
+            ok = (cols[:, s] >= 0) & (cols[:, t] >= 0)
+            if not ok.any():
+                continue
+            bi, bj = cols[ok, s], cols[ok, t]
+            rows.append((6 * bi[:, None, None] + r6[None, :, None]).repeat(6, axis=2).ravel())
+            columns.append((6 * bj[:, None, None] + r6[None, None, :]).repeat(6, axis=1).ravel())
+            vals.append((JT_P[ok, s] @ J[ok, t]).ravel())
+        ok = cols[:, s] >= 0
+        g = (JT_P[ok, s] @ e[ok][:, :, None])[:, :, 0]
+        np.add.at(b, (6 * cols[ok, s, None] + r6[None, :]).ravel(), -g.ravel())
+    N = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(columns))), shape=(size, size))
     return N, b
 
 
@@ -108,7 +186,8 @@ def _components(observations: list[RelativeObservation]) -> np.ndarray:
     from scipy.sparse.csgraph import connected_components
 
     n = 1 + max(max(o.i, o.j) for o in observations)
-    pairs = np.array([(o.i, o.j) for o in observations if o.j >= 0 and o.rank > 0], dtype=int).reshape(-1, 2)
+    pairs = np.array([(o.i, o.j) for o in observations
+                      if o.j >= 0 and o.rank > 0 and o.kind is not ObservationKind.DRIFT], dtype=int).reshape(-1, 2)
     graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     return connected_components(graph, directed=False)[1]
 
@@ -146,15 +225,16 @@ def adjust_block(
     # last bits are 1e-9 m, and the updates would never fall below the convergence threshold.
     origin = poses_initial.t_xyz[0].copy()
     observations = [_moved(o, -origin) for o in observations]
-    start = _moved_poses(poses_initial, -origin)
+    vnode = velocity_nodes(observations, n)
+    start = (_moved_poses(poses_initial, -origin), np.zeros((int(np.count_nonzero(vnode >= 0)), 6)))
     progress.start("block adjustment", total=None, unit="iterations")
     while True:
         try:
             if last_round:
                 _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
-            poses, iterations, factor, N, free_index, converged = _levenberg_marquardt(
-                start, observations, active, fixed, weights, config, progress)
-            tests, omega, redundancy, Qxx_blocks = _test_observations(poses, observations, active, fixed,
+            state, iterations, factor, N, free_index, converged = _levenberg_marquardt(
+                start, observations, active, fixed, vnode, weights, config, progress)
+            tests, omega, redundancy, Qxx_blocks = _test_observations(state, observations, active, fixed, vnode,
                                                                       free_index, weights, factor, N, config)
         except EstimationError:
             if not last_round:
@@ -162,7 +242,7 @@ def adjust_block(
             back = last_round  # singular or apart without the last round's rejections: all back
         else:
             variance = np.trace(Qxx_blocks[:, :3, :3], axis1=1, axis2=2)
-            back = _taken_back(last_round, observations, free_index, variance, variance_before)
+            back = _taken_back(last_round, observations, free_index[:n], variance, variance_before)
         if back:
             log.info("block: observations %s taken back (without them the network is undetermined)", back)
             for k in back:
@@ -178,7 +258,7 @@ def adjust_block(
             weights = new_weights
             vce_rounds += 1
             if changed:
-                start = poses
+                start = state
                 continue
         budget = config.max_rejections - len(rejected_order)
         # The trajectory's own links are not snooped: its gross errors (jumps) are found in the
@@ -186,7 +266,8 @@ def adjust_block(
         # drift model is off, which the variance components answer. Rejecting it would leave the
         # direction it carries to the planes, which may not fix it (a corridor): the walks of the
         # accuracy matrix lost alternate links there and drifted by 10-20 mm.
-        candidates = [t for t in tests if t.index not in protected and t.kind is not ObservationKind.TRAJECTORY]
+        candidates = [t for t in tests if t.index not in protected
+                      and t.kind not in (ObservationKind.TRAJECTORY, ObservationKind.DRIFT)]
         worst = _worst_outliers(candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
         if worst:
             for t in worst:
@@ -196,11 +277,11 @@ def adjust_block(
                 rejected_order.append(t.index)
                 last_round.append(t.index)
             variance_before = variance
-            start = poses  # warm start: the next round begins at the current solution
+            start = state  # warm start: the next round begins at the current solution
             continue
         break
     progress.finish()
-    poses = _moved_poses(poses, origin)
+    poses = _moved_poses(state[0], origin)
 
     sigma0 = float(np.sqrt(omega / redundancy)) if redundancy > 0 else float("nan")
     failure = _failure(converged, iterations, poses, omega, redundancy, Qxx_blocks)
@@ -279,22 +360,24 @@ def _check_datum(observations: list[RelativeObservation], fixed: np.ndarray, n: 
         )
 
 
-def _arrays(observations: list[RelativeObservation], active: np.ndarray):
-    idx = np.flatnonzero(active)
-    obs = [observations[k] for k in idx]
-    obs_i = np.array([o.i for o in obs])
-    obs_j = np.array([max(o.j, 0) for o in obs])
-    station = np.array([o.kind is ObservationKind.STATION for o in obs])
-    Z = Pose.stack([o.Z for o in obs])
-    P = np.stack([o.info for o in obs])
-    kinds = np.array([o.kind.value for o in obs])
-    return idx, obs_i, obs_j, station, Z, P, kinds
+def _free_index(fixed: np.ndarray, n_velocities: int) -> np.ndarray:
+    """Per node: its unknown-block index (-1: held fixed); the velocities after the stations."""
+    n_free = int(np.count_nonzero(~fixed))
+    free_index = -np.ones(len(fixed) + n_velocities, dtype=int)
+    free_index[np.flatnonzero(~fixed)] = np.arange(n_free)
+    free_index[len(fixed):] = n_free + np.arange(n_velocities)
+    return free_index
 
 
-def _cost(poses: Pose, obs_i: np.ndarray, obs_j: np.ndarray, Z: Pose, station: np.ndarray, P: FloatArray) -> float:
-    """The weighted sum of squared residuals ``sum e^T P e``."""
-    e = _residuals(poses, obs_i, obs_j, Z, station)
-    return float(np.einsum("ki,kij,kj->", e, P, e))
+def _columns(a: _Active, free_index: np.ndarray) -> np.ndarray:
+    return np.where(a.nodes >= 0, free_index[np.maximum(a.nodes, 0)], -1)
+
+
+def _stepped(poses: Pose, velocity: FloatArray, fixed: np.ndarray, dx: FloatArray) -> tuple[Pose, FloatArray]:
+    n_free = int(np.count_nonzero(~fixed))
+    step = np.zeros((len(poses), 6))
+    step[~fixed] = dx[:n_free]
+    return poses.compose(Pose.exp(step)), velocity + dx[n_free:]
 
 
 # Marquardt's damping: the first try of every iteration is the undamped Gauss-Newton step; a step
@@ -304,36 +387,31 @@ _FIRST_DAMPING = 1e-4
 _MAX_DAMPING = 1e8
 
 
-def _levenberg_marquardt(poses_initial, observations, active, fixed, weights, config, progress):
-    """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3). Converged when no unknown changes by
-    more than ``config.convergence`` or the cost falls by less than ``config.cost_tolerance`` of
-    itself; returns the poses, the iterations, the factor and normal matrix of the undamped
-    problem at the solution (for the covariances), the free-unknown index and whether it converged."""
-    _, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
-    P = P * np.array([weights[k] for k in kinds])[:, None, None]
-    free_index = -np.ones(len(poses_initial), dtype=int)
-    free_index[~fixed] = np.arange(np.count_nonzero(~fixed))
-    n_free = int(np.count_nonzero(~fixed))
-    col_i = free_index[obs_i]
-    col_j = np.where(station, -1, free_index[obs_j])
-    poses = poses_initial
-    cost = _cost(poses, obs_i, obs_j, Z, station, P)
+def _levenberg_marquardt(start, observations, active, fixed, vnode, weights, config, progress):
+    """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3) (the drift velocities are plain vectors).
+    Converged when no unknown changes by more than ``config.convergence`` or the cost falls by less
+    than ``config.cost_tolerance`` of itself; returns the state (poses, velocities), the
+    iterations, the factor and normal matrix of the undamped problem at the solution (for the
+    covariances), the node-to-unknown index and whether it converged."""
+    poses, velocity = start
+    a = _arrays(observations, active, vnode, weights)
+    free_index = _free_index(fixed, len(velocity))
+    n_free = int(free_index.max()) + 1
+    cols = _columns(a, free_index)
+    cost = _cost(poses, velocity, a)
     factor = N = None
     converged = damped = False
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007  (the count is returned)
-        e = _residuals(poses, obs_i, obs_j, Z, station)
-        J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
-        N, b = _assemble(n_free, col_i, col_j, J_i, J_j, P, e)
+        e, J = _linearise(poses, velocity, a)
+        N, b = _assemble(n_free, cols, J, a.P, e)
         lam = 0.0
         while True:
             damped = lam > 0.0
             factor = factorize(N + lam * sp.diags(N.diagonal()) if damped else N)
             dx = factor.solve(b).reshape(-1, 6)
-            step = np.zeros((len(poses), 6))
-            step[~fixed] = dx
-            trial = poses.compose(Pose.exp(step))
-            trial_cost = _cost(trial, obs_i, obs_j, Z, station, P)
+            trial = _stepped(poses, velocity, fixed, dx)
+            trial_cost = _cost(*trial, a)
             if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + 1e-12):
                 break
             lam = _FIRST_DAMPING if lam == 0.0 else 10.0 * lam
@@ -343,7 +421,7 @@ def _levenberg_marquardt(poses_initial, observations, active, fixed, weights, co
         if lam > _MAX_DAMPING:  # no step lowers the cost: at a minimum if the gradient vanishes there
             converged = bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
             break
-        poses, fell = trial, cost - trial_cost
+        (poses, velocity), fell = trial, cost - trial_cost
         cost = trial_cost
         if np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
             converged = True
@@ -351,32 +429,38 @@ def _levenberg_marquardt(poses_initial, observations, active, fixed, weights, co
     if not converged:
         log.info("block adjustment: no convergence after %d iterations", iterations)
     if damped:  # the covariances need the undamped normal matrix at the solution
-        e = _residuals(poses, obs_i, obs_j, Z, station)
-        J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
-        N, _ = _assemble(n_free, col_i, col_j, J_i, J_j, P, e)
+        e, J = _linearise(poses, velocity, a)
+        N, _ = _assemble(n_free, cols, J, a.P, e)
         factor = factorize(N)
-    return poses, iterations, factor, N, free_index, converged
+    return (poses, velocity), iterations, factor, N, free_index, converged
 
 
-def _test_observations(poses, observations, active, fixed, free_index, weights, factor, N, config):
+def _test_observations(state, observations, active, fixed, vnode, free_index, weights, factor, N, config):
     """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
     vectorised over observations (each restricted to the directions its information determines)."""
-    idx, obs_i, obs_j, station, Z, P, kinds = _arrays(observations, active)
-    P = P * np.array([weights[k] for k in kinds])[:, None, None]
-    e = _residuals(poses, obs_i, obs_j, Z, station)
-    J_i, J_j = _jacobians(poses, obs_i, obs_j, station)
-    col_i = free_index[obs_i]
-    col_j = np.where(station, -1, free_index[obs_j])
-    both = (col_i >= 0) & (col_j >= 0)
-    pairs = np.column_stack([col_i[both], col_j[both]]).astype(int).reshape(-1, 2)
-    diag, off = selected_inverse(N, 6, pairs, factor=factor)
+    a = _arrays(observations, active, vnode, weights)
+    P = a.P
+    e, J = _linearise(*state, a)
+    cols = _columns(a, free_index)
+    slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
+    both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
+    pairs = np.concatenate([np.column_stack([cols[ok, s], cols[ok, t]]) for (s, t), ok in zip(slot_pairs, both,
+                                                                                              strict=True)])
+    diag, off = selected_inverse(N, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
 
-    JQJ = np.zeros((len(idx), 6, 6))
-    for cols, J in ((col_i, J_i), (col_j, J_j)):
-        ok = cols >= 0
-        JQJ[ok] += J[ok] @ diag[cols[ok]] @ np.transpose(J[ok], (0, 2, 1))
-    cross = J_i[both] @ off @ np.transpose(J_j[both], (0, 2, 1))
-    JQJ[both] += cross + np.transpose(cross, (0, 2, 1))
+    offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
+    JQJ = np.zeros((len(a.idx), 6, 6))
+    for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
+        for s in group:
+            ok = cols[:, s] >= 0
+            JQJ[ok] += J[ok, s] @ diag[cols[ok, s]] @ np.transpose(J[ok, s], (0, 2, 1))
+        for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
+            if t not in group:
+                continue
+            cross = J[ok, s] @ off[offsets[m]:offsets[m + 1]] @ np.transpose(J[ok, t], (0, 2, 1))
+            JQJ[ok] += cross + np.transpose(cross, (0, 2, 1))
+        if group == (0, 1):
+            cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
 
     w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1))))
     determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
@@ -397,12 +481,14 @@ def _test_observations(poses, observations, active, fixed, free_index, weights, 
     statistic = np.where(r_k > 1e-6, statistic, np.nan)
     keep = dof > 0
     tests = [
-        ObservationTest(int(idx[k]), ObservationKind(kinds[k]), int(obs_i[k]), int(observations[idx[k]].j),
-                        float(statistic[k]), int(dof[k]), float(r_k[k]), float(np.sqrt(statistic[k] / dof[k])),
-                        False, float(vtpv[k]), min_redundancy=float(r_dir[k, 0]), cov_adjusted=JQJ[k])
+        ObservationTest(int(a.idx[k]), ObservationKind(a.kinds[k]), int(observations[a.idx[k]].i),
+                        int(observations[a.idx[k]].j), float(statistic[k]), int(dof[k]), float(r_k[k]),
+                        float(np.sqrt(statistic[k] / dof[k])), False, float(vtpv[k]),
+                        min_redundancy=float(r_dir[k, 0]), cov_adjusted=cov_adjusted[k])
         for k in np.flatnonzero(keep)
     ]
-    return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag
+    n_stations = int(np.count_nonzero(~fixed))
+    return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag[:n_stations]
 
 
 def _taken_back(last_round: list[int], observations: list[RelativeObservation], free_index: np.ndarray,

@@ -12,7 +12,7 @@ import numpy as np
 
 from kinreg.config import DriftConfig
 from kinreg.geometry import FloatArray, Pose, quat_to_rotvec
-from kinreg.types import BlockResult, ObservationKind, Plane, ScanKind, Station
+from kinreg.types import BlockResult, ObservationKind, Plane, RelativeObservation, ScanKind, Station
 
 
 def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
@@ -28,6 +28,12 @@ class DriftRates:
     """How fast the trajectory drifts, per object axis: position [m/s] and rotation [rad/s],
     plus the floors (short-term noise) [m], [rad]. ``sigma(dt)^2 = floor^2 + (rate dt)^2``.
 
+    ``correlation_s`` (position, rotation) is the correlation time of the drift velocity
+    (first-order Gauss-Markov, measured by :func:`estimate_drift_rates`): 0 where the drift of
+    one link tells nothing of the next (independent links), long where the drift is smooth (a
+    stretch that only the trajectory carries then errs by its length times the drift velocity,
+    not by the square root of its length).
+
     ``coupling`` says how the trajectory's attitude error enters its positions (METHOD.md
     section 1), measured by :func:`estimate_drift_rates`: 0 where the relative motion is exact in
     the scan's own frame (SLAM, dead reckoning, a rigid drift of the whole world: the position
@@ -42,6 +48,13 @@ class DriftRates:
     rot_floor_rad: float
     estimated: bool = False
     coupling: float = 0.0
+    correlation_s: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def state_space(self) -> bool:
+        """Whether the drift velocity is correlated from one trajectory link to the next (then the
+        block carries it as an unknown per link, :func:`drift_observation`)."""
+        return max(self.correlation_s) > 0.0
 
     @property
     def regime(self) -> str:
@@ -65,6 +78,22 @@ class DriftRates:
         cov[:3, :3] = R.T @ np.diag(f_pos**2 + (self.pos_m_per_s * dt_s) ** 2) @ R
         cov[3:, 3:] = R.T @ np.diag(f_rot**2 + (self.rot_rad_per_s * dt_s) ** 2) @ R
         return cov
+
+
+def drift_observation(rates: DriftRates, link: int, dt_s: float,
+                      previous: tuple[int, float] | None) -> RelativeObservation:
+    """The drift velocity of the trajectory link starting at station ``link`` (``dt_s`` long): a
+    first-order Gauss-Markov process in object axes with the spread of the drift rates and their
+    correlation times. Tied to the ``previous`` link of the run (its start station and length),
+    or, for the first link of a run, observed as zero with the process's stationary spread."""
+    variance = np.concatenate([rates.pos_m_per_s, rates.rot_rad_per_s]) ** 2
+    if previous is None:
+        return RelativeObservation(ObservationKind.DRIFT, link, -1, Pose.identity(), np.diag(1.0 / variance), 6)
+    lag = 0.5 * (previous[1] + dt_s)
+    tau = np.repeat(np.asarray(rates.correlation_s, dtype=float), 3)
+    decay = np.where(tau > 0.0, np.exp(-lag / np.maximum(tau, 1e-12)), 0.0)
+    return RelativeObservation(ObservationKind.DRIFT, previous[0], link, Pose.identity(),
+                               np.diag(1.0 / (variance * (1.0 - decay**2))), 6, decay=decay)
 
 
 def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRates) -> np.ndarray:
@@ -133,7 +162,7 @@ def with_window_deformation(planes: Sequence[Plane], T_obj_scan: Pose, rates: Dr
 
 
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates,
-                         floor_share: float = 1.0) -> DriftRates:
+                         floor_share: float = 1.0, measure_correlation: bool = True) -> DriftRates:
     """The trajectory's error model measured by the adjustment, from consecutive quasi-static
     stations of each run: the adjusted step ``y`` against the two predictions of the trajectory's
     step, ``u`` (its step in the scan frame was right: the initial step turned by the first
@@ -159,10 +188,11 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     rot = quat_to_rotvec(correction.quat_wxyz)
     R_corr, R_adj = correction.rotation_matrix, result.poses.rotation_matrix
     p_adj, p_init = result.poses.t_xyz, result.poses_initial.t_xyz
-    y, u, w, dts, rot_v, pos_noise, rot_noise = [], [], [], [], [], [], []
+    y, u, w, dts, rot_v, pos_noise, rot_noise, ends = [], [], [], [], [], [], [], []
     for a, b in itertools.pairwise(seq):
         if stations[a].run != stations[b].run:
             continue  # consecutive stations of the same run only: runs are not tied by a trajectory
+        ends.append((a, b))
         dt = stations[b].t_s - stations[a].t_s
         cov = noise.get((a, b), np.zeros((6, 6)))
         R = R_adj[a]
@@ -182,9 +212,39 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     pos_v = (Y - U - kappa * (W - U)) / np.array(dts)[:, None]
     pos_rate = _rms_rate(pos_v, np.array(pos_noise))
     rot_rate = _rms_rate(np.array(rot_v), np.array(rot_noise))
+    correlation = prior.correlation_s
+    if measure_correlation:
+        correlation = _correlation_times(ends, np.array(dts), pos_v, np.array(rot_v))
     return DriftRates(np.maximum(floor_share * prior.pos_m_per_s, pos_rate),
                       np.maximum(floor_share * prior.rot_rad_per_s, rot_rate),
-                      prior.pos_floor_m, prior.rot_floor_rad, estimated=True, coupling=kappa)
+                      prior.pos_floor_m, prior.rot_floor_rad, estimated=True, coupling=kappa,
+                      correlation_s=correlation)
+
+
+def _correlation_times(ends: list[tuple[int, int]], dts: np.ndarray, pos_v: np.ndarray,
+                       rot_v: np.ndarray) -> tuple[float, float]:
+    """Correlation times (position, rotation) [s] of the drift velocity, from the correlation of
+    the velocities of links two apart in a chain of consecutive links:
+    ``rho = sum v_k v_k+2 / sum (v_k^2 + v_k+2^2) / 2`` and ``tau = -lag / ln rho`` (0 where
+    rho <= 0), at most the run's length. Two apart, because links one apart share a station whose
+    own noise correlates them negatively; the noise in the squares shortens ``tau`` (the
+    cautious side). Stretches whose corrections show no drift (no plane fixes them) add to neither
+    sum."""
+    follows = np.array([ends[k + 1][0] == ends[k][1] for k in range(len(ends) - 1)], dtype=bool)
+    k = np.flatnonzero(follows[:-1] & follows[1:]) if len(follows) > 1 else np.zeros(0, dtype=int)
+    if not len(k):
+        return (0.0, 0.0)
+    span = float(np.sum(dts))
+    lag = float(np.median(dts[k] + 2.0 * dts[k + 1] + dts[k + 2]) / 2.0)  # centre to centre
+    out = []
+    for v in (pos_v, rot_v):
+        products = v[k] * v[k + 2]
+        energy = 0.5 * (v[k] ** 2 + v[k + 2] ** 2)
+        total = float(np.sum(energy))
+        rho = float(np.sum(products) / total) if total > 0.0 else 0.0
+        tau = float(-lag / np.log(rho)) if 0.0 < rho < 1.0 else (0.0 if rho <= 0.0 else np.inf)
+        out.append(min(tau, span))  # the run cannot show a correlation longer than itself
+    return (out[0], out[1])
 
 
 def _rms_rate(velocity: np.ndarray, noise: np.ndarray) -> np.ndarray:

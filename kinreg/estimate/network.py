@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
-from kinreg.estimate.drift import DriftRates, window_bias_covariance
+from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.estimate.pairwise import adjust_pair
 from kinreg.geometry import Pose, pose_sigmas, skew
@@ -137,17 +137,26 @@ def block_observations(
         if link.status is LinkStatus.OK and link.rank > 0
     ]
     sequence = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
+    last: tuple[int, float] | None = None  # the run's previous link: its first station and length
     for a, b in itertools.pairwise(sequence):
         sa, sb = stations[a], stations[b]
         if sa.run != sb.run:
+            last = None
             continue  # no trajectory between two runs
+        dt = _dt(sa, sb)
         Z = sa.T_obj_scan.inverse().compose(sb.T_obj_scan)
-        cov = (rates.covariance(_dt(sa, sb), sa.T_obj_scan) + window_bias_covariance(sa, sa.T_obj_scan, rates)
-               + window_bias_covariance(sb, sa.T_obj_scan, rates))
+        # With a correlated drift its velocity is an unknown of the link (drift_observation); the
+        # link itself then keeps the floors only.
+        cov = (rates.covariance(0.0 if rates.state_space else dt, sa.T_obj_scan)
+               + window_bias_covariance(sa, sa.T_obj_scan, rates) + window_bias_covariance(sb, sa.T_obj_scan, rates))
         if previous is not None and rates.coupling > 0.0:
             Z, cov = _coupled(Z, cov, sb.T_obj_scan.t_xyz - sa.T_obj_scan.t_xyz, previous.poses[a],
                               previous.cov_xi[a], rates.coupling)
-        observations.append(RelativeObservation(ObservationKind.TRAJECTORY, a, b, Z, np.linalg.inv(cov), 6))
+        observations.append(RelativeObservation(ObservationKind.TRAJECTORY, a, b, Z, np.linalg.inv(cov), 6,
+                                                dt_s=dt if rates.state_space else 0.0))
+        if rates.state_space:
+            observations.append(drift_observation(rates, a, dt, last))
+            last = (a, dt)
     return observations
 
 

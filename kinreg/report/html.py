@@ -198,6 +198,8 @@ def _drift_and_links(report: dict[str, Any]) -> str:
         ("drift rotation per axis [mdeg/s]", " / ".join(_fmt(v, 1) for v in rot) or DASH),
         ("drift rates", source),
         ("attitude coupling", f"{_fmt(rates.get('coupling'), 2)}: {rates.get('regime') or DASH}"),
+        ("drift correlation time, position / rotation [s]",
+         " / ".join(_fmt(v, 0) for v in _numbers(rates.get("correlation_s") or [])) or DASH),
     ]
     components = adj.get("variance_components") or {}
     rows += [(f"variance component {k}", _fmt(v, 3)) for k, v in components.items()]

@@ -120,6 +120,7 @@ def build_report(
                 "rot_mdeg_per_s": (np.degrees(drift_rates.rot_rad_per_s) * 1000).tolist(),
                 "coupling": drift_rates.coupling,
                 "regime": drift_rates.regime,
+                "correlation_s": list(drift_rates.correlation_s),
             },
             "n_observations": len(result.tests),
             "rejected_observations": rejected,

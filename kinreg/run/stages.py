@@ -193,7 +193,12 @@ def adjust_with_measured_drift(
     and the stretches carried by the trajectory alone get honest sigmas."""
     prior_rates = DriftRates.from_config(config.drift)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
-    rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
+    rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
+                                 config.drift.measure_correlation)
+    # The correlation of the drift is measured once, on the first adjustment, whose links are
+    # independent: an adjustment that already carries a smooth drift through the stretches no
+    # plane fixes would find it smooth there because it made it so.
+    correlation = rates.correlation_s
     linked_with = prior_rates
     for _ in range(config.block.max_relink_rounds):
         # Matched again from the adjusted poses: pairs that the trajectory's drift kept apart or
@@ -209,7 +214,8 @@ def adjust_with_measured_drift(
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
         network = network.with_links(links)
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
-        rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
+        rates = replace(estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
+                                             measure_correlation=False), correlation_s=correlation)
         if same:
             break
     # The last pass: the trajectory's links coupled with the measured coupling and rates.

@@ -1,0 +1,144 @@
+"""The trajectory's drift as a correlated process (issue #14): the block carries the drift
+velocity of every trajectory link as an unknown (first-order Gauss-Markov), and the correlation
+time is measured from the first adjustment's corrections."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from kinreg.config import BlockConfig
+from kinreg.estimate.block import adjust_block
+from kinreg.estimate.drift import DriftRates, estimate_drift_rates
+from kinreg.estimate.network import block_observations
+from kinreg.geometry import Pose
+from kinreg.types import ObservationKind, RelativeObservation, ScanKind, Station
+
+N_STATIONS, DT = 30, 6.0
+SIGMA_V = np.array([3e-4, 3e-4, 1e-4, 2e-6, 2e-6, 1e-5])  # drift velocity spread per object axis
+FLOOR_M, FLOOR_RAD = 2e-4, 2e-6
+PLANE_SIGMA = np.array([3e-4, 3e-4, 3e-4, 3e-5, 3e-5, 3e-5])
+
+
+def _walk() -> Pose:
+    t = DT * np.arange(N_STATIONS)
+    yaw = 0.02 * t  # a gentle turn: the stations' axes differ from the object's
+    quat = np.column_stack([np.cos(yaw / 2), 0 * t, 0 * t, np.sin(yaw / 2)])
+    return Pose(quat, np.column_stack([0.8 * t, 5.0 * np.sin(0.01 * t), 0 * t]))
+
+
+def _network(seed: int, tau_s: float):
+    """A walk whose first 8 stations see common planes (links among them) and whose other 22 are
+    carried by the trajectory alone; the drift velocity a Gauss-Markov process with ``tau_s``."""
+    rng = np.random.default_rng(seed)
+    truth = _walk()
+    decay = np.exp(-DT / tau_s)
+    v = np.zeros((N_STATIONS - 1, 6))
+    v[0] = rng.normal(0.0, SIGMA_V)
+    for k in range(1, N_STATIONS - 1):
+        v[k] = decay * v[k - 1] + rng.normal(0.0, SIGMA_V * np.sqrt(1.0 - decay**2))
+    floor = np.array([FLOOR_M] * 3 + [FLOOR_RAD] * 3)
+    poses = [truth[0]]
+    for k in range(N_STATIONS - 1):
+        rel = truth[k].inverse().compose(truth[k + 1])
+        S = np.kron(np.eye(2), truth[k + 1].rotation_matrix.T)
+        error = DT * S @ v[k] + rng.normal(0.0, floor)
+        poses.append(poses[-1].compose(rel.compose(Pose.exp(-error))))
+    initial = Pose.stack(poses)
+    stations = [Station(k, f"s{k}", ScanKind.QUASI_STATIC, DT * k, DT * k, DT * k, initial[k], 1000, tau_s=0.0)
+                for k in range(N_STATIONS)]
+    planes = []
+    for a in range(8):
+        for b in range(a + 1, 8):
+            Z = truth[a].inverse().compose(truth[b]).compose(Pose.exp(rng.normal(0.0, PLANE_SIGMA)))
+            planes.append(RelativeObservation(ObservationKind.PLANES, a, b, Z, np.diag(PLANE_SIGMA**-2), 6))
+    return truth, stations, planes
+
+
+def _normalised_errors(tau_model: float, seeds=range(40)) -> np.ndarray:
+    rates = DriftRates(SIGMA_V[:3], SIGMA_V[3:], FLOOR_M, FLOOR_RAD, correlation_s=(tau_model, tau_model))
+    fixed = np.zeros(N_STATIONS, dtype=bool)
+    fixed[0] = True
+    z = []
+    for seed in seeds:
+        truth, stations, planes = _network(seed, tau_s=120.0)
+        observations = planes + block_observations(stations, [], rates)
+        result = adjust_block(Pose.stack([s.T_obj_scan for s in stations]), observations, fixed,
+                              BlockConfig(data_snooping=False, variance_components=False))
+        assert not result.failed
+        error = result.poses.t_xyz[1:] - truth.t_xyz[1:]
+        z.append(error / result.sigma_position_m[1:])
+    return np.concatenate(z)
+
+
+def test_a_smooth_drift_carried_by_the_trajectory_alone_gets_honest_sigmas():
+    """22 stations beyond the planes, drift velocity correlated over 120 s: with the drift as a
+    process the errors follow their sigmas (pooled RMS per axis near 1); taken as independent from
+    link to link, the same sigmas are several times too small where the trajectory alone carries."""
+    z = _normalised_errors(120.0)
+    rms = np.sqrt(np.mean(z**2, axis=0))
+    assert np.all((rms > 0.8) & (rms < 1.25)), rms
+    z_independent = _normalised_errors(1e-9)
+    assert np.sqrt(np.mean(z_independent**2)) > 1.5 * np.sqrt(np.mean(z**2))
+
+
+def test_the_drift_velocity_learnt_on_the_planes_carries_on_beyond_them():
+    """Where planes fix the first stations, their drift velocity is known and, correlated, goes on:
+    the stations beyond are corrected better than by independent links."""
+    def error(tau_model):
+        rates = DriftRates(SIGMA_V[:3], SIGMA_V[3:], FLOOR_M, FLOOR_RAD, correlation_s=(tau_model, tau_model))
+        out = []
+        for seed in range(20):
+            truth, stations, planes = _network(seed, tau_s=120.0)
+            fixed = np.arange(N_STATIONS) == 0
+            result = adjust_block(Pose.stack([s.T_obj_scan for s in stations]),
+                                  planes + block_observations(stations, [], rates), fixed,
+                                  BlockConfig(data_snooping=False, variance_components=False))
+            out.append(np.linalg.norm(result.poses.t_xyz[8:16] - truth.t_xyz[8:16], axis=1))
+        return np.sqrt(np.mean(np.square(out)))
+
+    assert error(120.0) < 0.8 * error(1e-9)
+
+
+def test_independent_links_add_no_unknowns():
+    """Without a correlation the block's observations are those of independent links."""
+    truth, stations, planes = _network(0, tau_s=120.0)
+    rates = DriftRates(SIGMA_V[:3], SIGMA_V[3:], FLOOR_M, FLOOR_RAD)
+    kinds = {o.kind for o in block_observations(stations, [], rates)}
+    assert kinds == {ObservationKind.TRAJECTORY}
+    rates = replace(rates, correlation_s=(60.0, 60.0))
+    observations = block_observations(stations, [], rates)
+    drift = [o for o in observations if o.kind is ObservationKind.DRIFT]
+    assert len(drift) == N_STATIONS - 1  # a prior for the first link, a tie for each next one
+    assert sum(o.j < 0 for o in drift) == 1
+
+
+def _stations(n: int) -> list[Station]:
+    walk = Pose(np.tile([1.0, 0, 0, 0], (n, 1)), np.column_stack([0.5 * DT * np.arange(n), np.zeros(n), np.zeros(n)]))
+    return [Station(k, f"s{k}", ScanKind.QUASI_STATIC, DT * k, DT * k - 3, DT * k + 3, walk[k], 1000)
+            for k in range(n)]
+
+
+@pytest.mark.parametrize(("smooth", "expect_long"), [(True, True), (False, False)])
+def test_the_correlation_time_is_measured_from_the_corrections(smooth, expect_long):
+    n = 60
+    stations = _stations(n)
+    walk = Pose.stack([s.T_obj_scan for s in stations])
+    rng = np.random.default_rng(3)
+    if smooth:  # a drift velocity that turns slowly
+        t = DT * np.arange(n)
+        velocity = 3e-4 * np.column_stack([np.cos(t / 200.0), np.sin(t / 200.0), 0 * t])
+    else:  # a new velocity every link
+        velocity = rng.normal(0.0, 3e-4, (n, 3))
+    shift = np.vstack([np.zeros(3), np.cumsum(velocity[:-1] * DT, axis=0)])
+    drifted = Pose(walk.quat_wxyz, walk.t_xyz + shift)
+    result = SimpleNamespace(poses=drifted, poses_initial=walk, tests=(), cov_xi=np.zeros((n, 6, 6)))
+    prior = DriftRates(np.full(3, 3e-4), np.full(3, 5e-5), 1e-3, 1e-4)
+    tau_pos, _ = estimate_drift_rates(stations, result, prior).correlation_s
+    if expect_long:
+        assert tau_pos > 100.0
+    else:
+        assert tau_pos < DT
