@@ -209,15 +209,15 @@ def test_drift_rates_measure_the_relative_motion_not_a_turned_walk():
                 for k in range(n)]
     prior = DriftRates(np.full(3, 3e-4), np.full(3, 5e-5), 1e-3, 1e-4)
     turned = Pose.exp(np.array([0, 0, 0, 0, 0, np.radians(0.3)])).compose(walk)  # about the origin, 20 m off
-    rates = estimate_drift_rates(stations, SimpleNamespace(poses=turned, poses_initial=walk, tests=(), cov_xi=np.zeros((n, 6, 6))), prior,
+    rates = estimate_drift_rates(stations, SimpleNamespace(poses=turned, poses_initial=walk, tests=()), prior,
                                  floor_share=0.01)
     assert np.all(rates.pos_m_per_s < 1e-5)  # 0.3 deg x 2.4 m a step would read 2 mm/s
     drifted = Pose(walk.quat_wxyz, walk.t_xyz + np.column_stack([2e-4 * t, 0 * t, 0 * t]))
-    rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=(), cov_xi=np.zeros((n, 6, 6))), prior,
+    rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=()), prior,
                                  floor_share=0.01)
     assert rates.pos_m_per_s[0] == pytest.approx(2e-4, rel=1e-6)
     assert rates.pos_m_per_s[1] < 1e-5
-    rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=(), cov_xi=np.zeros((n, 6, 6))), prior,
+    rates = estimate_drift_rates(stations, SimpleNamespace(poses=drifted, poses_initial=walk, tests=()), prior,
                                  floor_share=0.25)
     assert rates.pos_m_per_s[1] == pytest.approx(0.25 * 3e-4)  # never below the share of the prior
 

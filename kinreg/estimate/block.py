@@ -93,7 +93,8 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     nodes[drift, 1] = np.where(j[drift] >= 0, vnode[np.maximum(j[drift], 0)], -1)
     P = np.stack([o.info for o in obs]) * np.array([weights[k] for k in kinds])[:, None, None]
     return _Active(idx, kinds, nodes, pose, station, Pose.stack([o.Z for o in obs]), P,
-                   np.array([o.dt_s for o in obs]), np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6))
+                   np.array([o.dt_s for o in obs]),
+                   np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6))
 
 
 def _to_station_axes(R: FloatArray) -> FloatArray:
@@ -153,7 +154,8 @@ def _cost(poses: Pose, velocity: FloatArray, a: _Active) -> float:
     return float(np.einsum("ki,kij,kj->", e, a.P, e))
 
 
-def _assemble(n_free: int, cols: np.ndarray, J: FloatArray, P: FloatArray, e: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
+def _assemble(n_free: int, cols: np.ndarray, J: FloatArray, P: FloatArray,
+              e: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
     """Normal matrix (6 n_free square, sparse) and right-hand side from per-observation blocks.
 
     ``cols`` (k, slots) are the unknown-block indices of each observation's nodes (-1: fixed or
