@@ -105,13 +105,14 @@ def _to_station_axes(R: FloatArray) -> FloatArray:
     return S
 
 
-def _linearise(poses: Pose, velocity: FloatArray, a: _Active, jacobians: bool = True):
-    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6) to first order
+def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
+               jacobians: bool = True) -> tuple[FloatArray, FloatArray]:
+    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) to first order
     in the residual. Pose observations: ``e = log(Z^-1 T_i^-1 T_j) - dt S_j v`` (``log(Z^-1 T_i)``
     for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``)."""
     k = len(a.idx)
     e = np.zeros((k, 6))
-    J = np.zeros((k, 3, 6, 6)) if jacobians else None
+    J = np.zeros((k if jacobians else 0, 3, 6, 6))  # empty without jacobians
     p = np.flatnonzero(a.pose)
     if len(p):
         st = a.station[p]
