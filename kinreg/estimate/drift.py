@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from kinreg.config import DriftConfig
-from kinreg.geometry import FloatArray, Pose, quat_to_rotvec
+from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, skew
 from kinreg.types import BlockResult, ObservationKind, Plane, RelativeObservation, ScanKind, Station
 
 
@@ -260,15 +260,24 @@ def _rms_rate(velocity: np.ndarray, noise: np.ndarray) -> np.ndarray:
 
 def with_window_bias(result: BlockResult, stations: Sequence[Station], rates: DriftRates) -> BlockResult:
     """The block result with each free station's covariance increased by the window bias of the
-    station and of the datum station (positions are relative to the datum's scan frame)."""
+    station and of the datum station (positions are relative to the datum's scan frame: its turn
+    moves a station by the lever from it)."""
     cov_xi = result.cov_xi.copy()
     datum = [int(k) for k in np.flatnonzero(result.fixed)]
+    # The datum station's bias in object axes: its frame's shift and turn, which move every station
+    # with it, the turn by the lever from the datum station (a rotation of the whole network).
+    datum_bias = [(window_bias_covariance(stations[d], Pose.identity(), rates), result.poses.t_xyz[d])
+                  for d in datum[:1]]
     for k, s in enumerate(stations):
         if result.fixed[k]:
             continue
         cov_xi[k] += window_bias_covariance(s, result.poses[k], rates)
-        for d in datum[:1]:
-            cov_xi[k] += window_bias_covariance(stations[d], result.poses[k], rates)
+        R_t = result.poses[k].rotation_matrix.T
+        for bias, x_datum in datum_bias:
+            J = np.zeros((6, 6))  # (shift, turn) of the datum frame in object axes -> station k's twist
+            J[:3, :3] = J[3:, 3:] = R_t
+            J[:3, 3:] = -R_t @ skew(result.poses.t_xyz[k] - x_datum)
+            cov_xi[k] += J @ bias @ J.T
     R = result.poses.rotation_matrix
     cov_position = R @ cov_xi[:, :3, :3] @ np.transpose(R, (0, 2, 1))
     return replace(result, cov_xi=cov_xi, cov_position=cov_position)
