@@ -142,3 +142,24 @@ def test_the_correlation_time_is_measured_from_the_corrections(smooth, expect_lo
         assert tau_pos > 100.0
     else:
         assert tau_pos < DT
+
+
+def test_a_trajectory_link_far_off_its_model_is_named(caplog):
+    """The trajectory's links are never rejected; one far beyond its model is named in a warning."""
+    import logging
+
+    from kinreg.run.stages import _warn_trajectory_misfits
+    from kinreg.types import ObservationTest
+
+    def test(k, statistic):
+        return ObservationTest(k, ObservationKind.TRAJECTORY, k, k + 1, statistic, 6, 3.0,
+                               float(np.sqrt(statistic / 6)), False)
+
+    quiet = SimpleNamespace(tests=[test(k, 6.0) for k in range(40)])
+    with caplog.at_level(logging.WARNING):
+        _warn_trajectory_misfits(quiet, 0.001)
+    assert not caplog.records
+    loud = SimpleNamespace(tests=[test(k, 6.0) for k in range(40)] + [test(17, 6 * 81.0)])
+    with caplog.at_level(logging.WARNING):
+        _warn_trajectory_misfits(loud, 0.001)
+    assert "17-18 (9 sigma)" in caplog.text

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy import stats
 
 from kinreg.config import (
     DriftConfig,
@@ -49,6 +50,7 @@ from kinreg.types import (
     BlockResult,
     Link,
     LinkStatus,
+    ObservationKind,
     Plane,
     Scan,
     ScanKind,
@@ -220,7 +222,25 @@ def adjust_with_measured_drift(
             break
     # The last pass: the trajectory's links coupled with the measured coupling and rates.
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
+    _warn_trajectory_misfits(result, config.block.alpha)
     return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)
+
+
+def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
+    """Say where the trajectory's own links disagree with the adjusted network beyond what one of
+    them may (chi-square at ``alpha`` over their number): they are never rejected, so such a
+    misfit means that plane links moved stations against the trajectory (a wrong match the tests
+    did not find) or a jump the detector missed; the global test can pass all the same."""
+    links = [t for t in result.tests if t.kind is ObservationKind.TRAJECTORY and np.isfinite(t.statistic)]
+    if not links:
+        return
+    critical = {dof: stats.chi2.ppf(1.0 - alpha / len(links), dof) for dof in {t.dof for t in links}}
+    bad = sorted((t for t in links if t.statistic > critical[t.dof]), key=lambda t: -t.statistic / critical[t.dof])
+    if bad:
+        worst = ", ".join(f"{t.i}-{t.j} ({t.normalised:.0f} sigma)" for t in bad[:5])
+        log.warning("the trajectory disagrees with the adjusted network between %d pair(s) of consecutive "
+                    "stations beyond its model: %s. Check the links there (a wrong plane match or a jump)",
+                    len(bad), worst)
 
 
 def _linked_pairs(links: Sequence[Link]) -> set[tuple[int, int]]:
