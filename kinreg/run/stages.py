@@ -26,6 +26,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import adjust_network, take_out_jumps
 from kinreg.estimate.drift import (
     DriftRates,
+    deskewed_planes,
     estimate_drift_rates,
     plane_time_offsets,
     rms_time_offset,
@@ -209,8 +210,12 @@ def adjust_with_measured_drift(
         # prior hardly moved are kept, unless the drift is faster than they were made with.
         faster = bool(np.any(rates.pos_m_per_s > 1.2 * linked_with.pos_m_per_s)
                       or np.any(rates.rot_rad_per_s > 1.2 * linked_with.rot_rad_per_s))
-        links = link_stations(network.stations, planes, config.matching, config.drift, config.pairwise, progress,
-                              static, executor, rates, adjusted=result, previous=() if faster else network.links)
+        # Where the attitude error is coupled (GNSS/INS-like) it shears every window: its planes are
+        # moved back with the adjusted attitudes, and every pair is linked again with them.
+        sheared = rates.coupling > 0.0
+        links = link_stations(network.stations, deskewed_planes(network.stations, planes, result, rates),
+                              config.matching, config.drift, config.pairwise, progress, static, executor, rates,
+                              adjusted=result, previous=() if faster or sheared else network.links)
         linked_with = rates if faster else linked_with
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
