@@ -39,17 +39,19 @@ log = logging.getLogger(__name__)
 
 
 def station_pairs(stations: Sequence[Station], matching: MatchingConfig,
-                  static: StaticConfig | None = None) -> list[tuple[int, int]]:
+                  static: StaticConfig | None = None, loops: bool = True) -> list[tuple[int, int]]:
     """Candidate pairs: sequence neighbours and nearby stations among the quasi-static stations of
     each run, stations of different runs within ``matching.radius_m`` of each other, and every
-    station within ``static.link_radius_m`` of a static one."""
+    station within ``static.link_radius_m`` of a static one. Without ``loops``, a run's stations
+    are paired with their sequence neighbours only (no loop closures within a run)."""
     positions = np.array([s.T_obj_scan.t_xyz for s in stations])
     quasi = np.array([s.kind is ScanKind.QUASI_STATIC for s in stations])
     runs = np.array([s.run for s in stations])
     pairs: set[tuple[int, int]] = set()
+    within_run = matching if loops else replace(matching, radius_m=0.0)
     for run in np.unique(runs[quasi]):
         qs = np.flatnonzero(quasi & (runs == run))
-        pairs |= {(int(qs[a]), int(qs[b])) for a, b in candidate_pairs(positions[qs], matching)}
+        pairs |= {(int(qs[a]), int(qs[b])) for a, b in candidate_pairs(positions[qs], within_run)}
     pairs |= _cross_run_pairs(positions, runs, quasi, matching.radius_m)
     if static is not None and (~quasi).any():
         for k in np.flatnonzero(~quasi):

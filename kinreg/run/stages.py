@@ -160,14 +160,21 @@ def link_stations_cached(stations: list[Station], planes: list[tuple[Plane, ...]
     """:func:`~kinreg.estimate.network.link_stations` through the stage cache, keyed by the stations and
     planes themselves (so also by anything that moved them, e.g. ``[initial_transform]``) and
     ``[matching]``, ``[drift]``, ``[pairwise]``, ``[static]``."""
-    key = run.key("link", *content_parts(stations, planes), config.matching, config.drift, config.pairwise, static)
+    # Coarse to fine: the first links are the sequence neighbours' (and the static scans' and other
+    # runs'); loop closures within a run wait for the relinking from the adjusted poses, once the
+    # drift is measured and taken out. Matched on the drifted trajectory, a loop closure across a
+    # drift larger than the prior's found parallel planes 0.2 m off on a 0.5 m / 2 deg run and
+    # moved its stations by as much.
+    loops = config.block.max_relink_rounds == 0
+    key = run.key("link", *content_parts(stations, planes), config.matching, config.drift, config.pairwise, static,
+                  loops)
     entry = run.load("link", key)
     if entry is not None:
         run.count("link", reused=1)
         log.info("link: the pairwise links are re-used from the stage cache")
         return links_from_arrays(entry.arrays)
     links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
-                          executor)
+                          executor, loops=loops)
     run.store("link", key, links_to_arrays(links))
     run.count("link", computed=1)
     return links
@@ -285,6 +292,7 @@ def link_stations(
     rates: DriftRates | None = None,
     adjusted: BlockResult | None = None,
     previous: Sequence[Link] = (),
+    loops: bool = True,
 ) -> list[Link]:
     """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
     batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
@@ -308,7 +316,7 @@ def link_stations(
         floor = pose_sigmas(rates.pos_floor_m, rates.rot_floor_rad)
         own = np.sqrt(np.maximum(np.diagonal(adjusted.cov_xi, axis1=1, axis2=2), 0.0))
         sigmas = 2.0 * np.hypot(own, floor / np.sqrt(2.0))
-    pairs = station_pairs(stations, matching, static)
+    pairs = station_pairs(stations, matching, static, loops)
     kept = _unmoved_links(previous, pairs, initial, stations, matching) if adjusted is not None else {}
     todo = [pair for pair in pairs if pair not in kept]
     # Once per station, not once per pair: matching does not look at the covariances.
