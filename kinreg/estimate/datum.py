@@ -13,6 +13,7 @@ import numpy as np
 from kinreg.config import BlockConfig, Disconnected, DiscontinuityConfig, KinregConfig, StaticConfig, StaticDatum
 from kinreg.errors import ConfigError, EstimationError
 from kinreg.estimate.block import adjust_block, loose_parts
+from kinreg.estimate.control import ControlTie, control_observations, first_station_rotation, free_rotations
 from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
@@ -94,10 +95,13 @@ def build_network(
     references: ReferencePlanes | None,
     static: StaticConfig | None,
     config: KinregConfig,
+    controls: Sequence[ControlTie] = (),
 ) -> Network:
     """The network the block adjusts, with its datum: static scans (fixed, or observed with
     ``[static] sigma_*``), reference planes (a tie plane per detected plane on one), or else the
-    first station. A part of the network that no link ties to the datum is refused, or (``[block]
+    first station. Control points (``controls``) join any of these; alone, three or more (not on
+    one line) are the datum, and the rotations that one or two leave free are held at the first
+    station's. A part of the network that no link ties to the datum is refused, or (``[block]
     disconnected = "fix_each"``) held on its own first station. Raises :class:`ConfigError` when
     the reference planes tie nothing or leave a datum direction free, :class:`EstimationError`
     when the network falls apart."""
@@ -124,13 +128,21 @@ def build_network(
                               references.source)
         datum_obs += tie_observations(ties, poses_initial, planes, references, config.reference)
         datum.append(f"reference planes ({len(ties)} tie planes)")
+    if controls:
+        axes, fixes = free_rotations(controls)
+        if not datum and len(axes):
+            datum_obs.append(first_station_rotation(axes, 0, stations[0].T_obj_scan,
+                                                    config.control.free_rotation_sigma_rad))
+            fixes += f"; the first station's rotation about {'every axis' if len(axes) == 3 else 'that line'}"
+        datum.append(f"{len(controls)} control point(s) (fixing {fixes})")
     if not datum:
         fixed[0] = True
         datum.append("first station")
-    if references is not None and not fixed.any() and static is None:
+    if references is not None and not fixed.any() and static is None and not controls:
         _check_reference_datum(ties, references)
-    parts = loose_parts(block_observations(stations, links, DriftRates.from_config(config.drift)) + datum_obs,
-                        fixed, len(stations))
+    prior = DriftRates.from_config(config.drift)
+    parts = loose_parts(block_observations(stations, links, prior) + datum_obs
+                        + control_observations(controls, stations, prior), fixed, len(stations))
     if parts:
         names = ", ".join(f"{stations[p[0]].name}..{stations[p[-1]].name}" for p in parts[:5])
         if config.block.disconnected is Disconnected.STOP:
@@ -142,7 +154,8 @@ def build_network(
         for p in parts:
             fixed[p[0]] = True
         datum.append(f"{len(parts)} disconnected part(s) each on its first station")
-    return Network(tuple(stations), tuple(links), Datum(fixed, tuple(datum_obs), "; ".join(datum), tuple(ties)))
+    return Network(tuple(stations), tuple(links), Datum(fixed, tuple(datum_obs), "; ".join(datum), tuple(ties),
+                                                        tuple(controls)))
 
 
 def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
