@@ -204,6 +204,12 @@ def process_command(
         ("position sigma", f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm"),
         ("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm"),
         ("rejected observations", f"{summary.n_rejected}"),
+    ]
+    if summary.control_rejected is not None:
+        rows.append(("control points rejected", ", ".join(summary.control_rejected) or "none"))
+    if summary.check_rms_mm is not None:
+        rows.append(("check points", f"3D RMS {summary.check_rms_mm:.1f} mm ({summary.check_loa})"))
+    rows += [
         ("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items())),
     ]
     reused = {k: v for k, v in summary.stage_cache.items() if v["reused"]}

@@ -150,3 +150,42 @@ def _cell(value: Any, column: str) -> str:
     if isinstance(value, float):
         return f"{value:.6f}" if column in ("t",) else f"{value:.4f}" if column in ("x", "y", "z") else f"{value:.3f}"
     return str(value)
+
+
+def control_html(report: dict[str, Any]) -> str:
+    """The control- and check-point tables of ``report.html`` (empty without either)."""
+    from kinreg.report.text import _esc, _fmt, _tag
+
+    parts = []
+    columns = ("name", "dx_mm", "dy_mm", "dz_mm", "horizontal_mm", "vertical_mm", "d3d_mm")
+
+    def table(rows: Sequence[dict[str, Any]], extra: Sequence[str]) -> str:
+        head = _tag("tr", "".join(_tag("th", _esc(c)) for c in (*columns, *extra)))
+        body = "".join(_tag("tr", "".join(
+            _tag("td", _esc(str(r.get(c, "")) if c in ("name", "decision") else _fmt(r.get(c), 2)))
+            for c in (*columns, *extra))) for r in rows)
+        return _tag("table", head + body)
+
+    control = report.get("control")
+    if isinstance(control, dict):
+        rejected = control.get("rejected") or []
+        text = (f"{control.get('n', 0)} control points; corrected trajectory minus surveyed [mm]; normalised "
+                "residual \u221a(T/dof) of its observation and the data-snooping decision"
+                + (f"; rejected: {', '.join(rejected)}" if rejected else ""))
+        parts.append(_tag("h3", "Control points") + _tag("p", _esc(text))
+                     + table(control.get("rows") or [], ("normalised", "decision")))
+        parts += [_tag("p", _esc(line)) for line in control.get("left_out") or []]
+    check = report.get("check")
+    if isinstance(check, dict):
+        s, s0, loa = check.get("summary", {}), check.get("summary_input", {}), check.get("loa", {})
+        text = (f"{check.get('n', 0)} check points (not in the adjustment): 3D RMS "
+                f"{_fmt(s.get('d3d_mm', {}).get('rms'), 1)} mm, max {_fmt(s.get('d3d_mm', {}).get('max'), 1)} mm "
+                f"(input trajectory: RMS {_fmt(s0.get('d3d_mm', {}).get('rms'), 1)} mm, max "
+                f"{_fmt(s0.get('d3d_mm', {}).get('max'), 1)} mm); supports {loa.get('class', '')} "
+                f"(2\u03c3 = {_fmt(loa.get('two_sigma_mm'), 1)} mm; input {loa.get('input_class', '')}; bands: "
+                f"{loa.get('source', LOA_SOURCE)})")
+        parts.append(_tag("h3", "Check points") + _tag("p", _esc(text)) + table(check.get("rows") or [], ()))
+        parts += [_tag("p", _esc(line)) for line in check.get("left_out") or []]
+    if not parts:
+        return ""
+    return _tag("h2", "Control and check points") + _tag("div", "".join(parts), class_="card")

@@ -189,6 +189,9 @@ class ProcessSummary:
     # per stage: {"reused": n, "computed": m} items (scans, files) of this run
     stage_cache: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
     n_runs: int = 1
+    control_rejected: tuple[str, ...] | None = None  # None: no control points given
+    check_rms_mm: float | None = None  # 3D RMS of the check differences; None: no check points
+    check_loa: str = ""
 
     @classmethod
     def from_report(cls, out_dir: Path, report: dict[str, Any]) -> ProcessSummary:
@@ -208,6 +211,9 @@ class ProcessSummary:
             timings_s=report["timings_s"],
             stage_cache=report["stage_cache"],
             n_runs=len(report["inputs"]["runs"]),
+            control_rejected=tuple(report["control"]["rejected"]) if "control" in report else None,
+            check_rms_mm=report["check"]["summary"]["d3d_mm"]["rms"] if "check" in report else None,
+            check_loa=report["check"]["loa"]["class"] if "check" in report else "",
         )
 
 
@@ -282,6 +288,7 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
             cloud_views=views.finish(out))  # "cloud" and "crs"; the PNGs go straight into out/figures
         report.update(points_report(adjusted.network, adjusted.result, control, check, kinematic.trajectories,
                                     corrections, config))
+        report["inputs"].update({k: str(p) for k, p in (("control", inputs.control), ("check", inputs.check)) if p})
         write_tables(staging, report, adjusted.network, adjusted.result, planes, figures_dir=out)
         clock.lap("reports")
         write_report_json(staging / "report.json", report)
