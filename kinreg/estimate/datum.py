@@ -9,6 +9,7 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
+from scipy import stats
 
 from kinreg.config import BlockConfig, Disconnected, DiscontinuityConfig, KinregConfig, StaticConfig, StaticDatum
 from kinreg.errors import ConfigError, EstimationError
@@ -156,6 +157,60 @@ def build_network(
         datum.append(f"{len(parts)} disconnected part(s) each on its first station")
     return Network(tuple(stations), tuple(links), Datum(fixed, tuple(datum_obs), "; ".join(datum), tuple(ties),
                                                         tuple(controls)))
+
+
+def screen_control_points(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
+                          previous: BlockResult | None = None) -> Network:
+    """``network`` without the control points that data snooping rejects when every observation
+    keeps its a-priori weight (kept in ``datum.rejected_controls`` with their normalised residual).
+
+    Why here and not in the block's own snooping: the block estimates a variance component per
+    observation kind (``[block] variance_components``); with four or more control points it does
+    so for theirs too, and one wrong point then inflates the group's variance until it no longer
+    stands out (on a simulated run a point 5 cm off ended at a normalised residual of 1.4 among
+    three good ones at 0.5-0.7); and it rejects one observation per station per round, which
+    takes every control point above the critical value at once (each is on its own station) and
+    then has to take them all back. So the points are tested against the surveyor's sigmas, one
+    at a time: the worst above the critical value goes, and the network is adjusted again. A
+    rejection that would leave the datum short of a direction (fewer than three points off one
+    line, and nothing else to hold it) is not made."""
+    if not network.datum.controls or not config.data_snooping:
+        return network
+    strict = dataclasses.replace(config, variance_components=False)
+    held_elsewhere = bool(network.datum.fixed.any() or network.datum.observations)
+    rejected: list[tuple[str, float]] = []
+    while len(rejected) < config.max_rejections:
+        result = adjust_block(network.initial_poses, network.observations(rates, previous), network.datum.fixed,
+                              strict, progress)
+        tests = {t.index: t for t in result.tests}
+        scores = {}
+        for k, index in enumerate(network.control_indices()):
+            t = tests.get(index)
+            if (t is None or t.rejected or not np.isfinite(t.statistic) or t.redundancy <= 0.05
+                    or t.min_redundancy < 0.02):
+                continue
+            critical = float(stats.chi2.ppf(1.0 - config.alpha, t.dof))
+            if t.statistic > critical:
+                scores[k] = (t.statistic / critical, t.normalised)
+        if not scores:
+            break
+        worst = max(scores, key=lambda k: scores[k][0])
+        kept = tuple(c for k, c in enumerate(network.datum.controls) if k != worst)
+        name = network.datum.controls[worst].name
+        if not kept or (len(free_rotations(kept)[0]) and not held_elsewhere):
+            log.warning("control point %s does not fit (normalised residual %.1f), but without it the control points "
+                        "would not fix the datum: kept", name, scores[worst][1])
+            break
+        log.warning("control point %s rejected by data snooping (normalised residual %.1f against its sigma)", name,
+                    scores[worst][1])
+        rejected.append((name, scores[worst][1]))
+        network = dataclasses.replace(network, datum=dataclasses.replace(network.datum, controls=kept))
+    if not rejected:
+        return network
+    names = ", ".join(name for name, _ in rejected)
+    datum = dataclasses.replace(network.datum, description=f"{network.datum.description}; control point(s) {names} "
+                                "rejected", rejected_controls=network.datum.rejected_controls + tuple(rejected))
+    return dataclasses.replace(network, datum=datum)
 
 
 def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,

@@ -164,6 +164,9 @@ class Datum:
     description: str
     ties: tuple[Tie, ...] = ()
     controls: tuple[ControlTie, ...] = ()
+    # control points rejected by their screening (kinreg.estimate.datum.screen_control_points):
+    # name and the normalised residual they had
+    rejected_controls: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)

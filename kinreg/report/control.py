@@ -86,12 +86,20 @@ def control_section(network: Network, result: BlockResult, assignment: Assignmen
                     reference_point_m: FloatArray, alpha: float) -> dict[str, Any]:
     """``report.json`` ``control``: one row per control point used, and the points left out."""
     ties = {t.name: (k, t) for k, t in enumerate(network.datum.controls)}
+    screened = dict(network.datum.rejected_controls)
     indices = network.control_indices()
     tests = {t.index: t for t in result.tests}
     corrected = positions_at(trajectories, corrections, assignment, reference_point_m)
     original = positions_at(trajectories, None, assignment, reference_point_m)
     rows = _differences(assignment.names, corrected - assignment.xyz)
     for n, row in enumerate(rows):
+        if row["name"] in screened:  # rejected before the last pass: not in the network
+            row.update({"role": "control", "t": assignment.stand_stills[n].t_s, "station": "",
+                        "x": float(assignment.xyz[n, 0]), "y": float(assignment.xyz[n, 1]),
+                        "z": float(assignment.xyz[n, 2]), "sigma_mm": float(assignment.sigma_m[n] * 1000.0),
+                        "normalised": screened[row["name"]], "decision": "rejected",
+                        "input_d3d_mm": float(np.linalg.norm(original[n] - assignment.xyz[n]) * 1000.0)})
+            continue
         k, tie = ties[row["name"]]
         test = tests.get(indices[k])
         decision, normalised = "not tested", math.nan

@@ -22,7 +22,7 @@ from kinreg.config import (
 )
 from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.correction import DriftCorrection
-from kinreg.estimate.datum import adjust_network, take_out_jumps
+from kinreg.estimate.datum import adjust_network, screen_control_points, take_out_jumps
 from kinreg.estimate.drift import (
     DriftRates,
     estimate_drift_rates,
@@ -212,7 +212,9 @@ def adjust_with_measured_drift(
         rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor)
         if same:
             break
-    # The last pass: the trajectory's links coupled with the measured coupling and rates.
+    # Control points tested against their own sigmas, then the last pass: the trajectory's links
+    # coupled with the measured coupling and rates.
+    network = screen_control_points(network, rates, config.block, progress, previous=result)
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)
 
