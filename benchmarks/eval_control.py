@@ -145,14 +145,17 @@ def main() -> None:
     for seed in args.seeds:
         with tempfile.TemporaryDirectory(prefix=f"kinreg-control-{seed}-") as tmp:
             results.append(evaluate(seed, Path(tmp)))
-    pooled = summary(results)
-    print(json.dumps(pooled, indent=1))
-    for r in results:
-        for label in ("n3", "n4", "n6", "wrong"):
-            r[label]["stations"].pop("z")
-    args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
-                                    "summary": pooled, "results": results}, indent=1) + "\n")
+        write(args.out, results)  # after every seed: a long run stopped early keeps what it has
+    print(json.dumps(summary(results), indent=1))
     print(f"written {args.out}")
+
+
+def write(path: Path, results: list[dict]) -> None:
+    plain = [{k: ({**v, "stations": {s: x for s, x in v["stations"].items() if s != "z"}} if isinstance(v, dict)
+                  else v) for k, v in r.items()} for r in results]
+    path.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
+                                "seeds_done": [r["seed"] for r in results], "summary": summary(results),
+                                "results": plain}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
 from kinreg.estimate.reference import associate, tie_observations
-from kinreg.geometry import Pose, pose_sigmas
+from kinreg.geometry import Pose, pose_sigmas, skew
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.progress import Progress
 from kinreg.types import (
@@ -161,56 +161,73 @@ def build_network(
 
 def screen_control_points(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
                           previous: BlockResult | None = None) -> Network:
-    """``network`` without the control points that data snooping rejects when every observation
-    keeps its a-priori weight (kept in ``datum.rejected_controls`` with their normalised residual).
+    """``network`` without the control points that do not fit the others (kept in
+    ``datum.rejected_controls`` with their normalised residual).
 
-    Why here and not in the block's own snooping: the block estimates a variance component per
-    observation kind (``[block] variance_components``); with four or more control points it does
-    so for theirs too, and one wrong point then inflates the group's variance until it no longer
-    stands out (on a simulated run a point 5 cm off ended at a normalised residual of 1.4 among
-    three good ones at 0.5-0.7); and it rejects one observation per station per round, which
-    takes every control point above the critical value at once (each is on its own station) and
-    then has to take them all back. So the points are tested against the surveyor's sigmas, one
-    at a time: the worst above the critical value goes, and the network is adjusted again. A
-    rejection that would leave the datum short of a direction (fewer than three points off one
-    line, and nothing else to hold it) is not made."""
-    if not network.datum.controls or not config.data_snooping:
+    Each point is tested against the network adjusted without it (no variance components, no data
+    snooping): ``T = d^T (C + J Q J^T)^-1 d``, chi-square with 3 degrees of freedom, where ``d`` is
+    the predicted minus the surveyed position, ``C`` its observation's covariance and ``J Q J^T``
+    the prediction's. The worst point above the critical value (``[block] alpha``) goes, and the
+    rest are tested again. A rejection that would leave the datum short of a direction (fewer than
+    three points off one line, and nothing else to hold it) is not made.
+
+    Why not the block's own snooping: it estimates a variance component per observation kind,
+    and one wrong point among four inflated theirs until it no longer stood out (a point 5 cm off
+    at a normalised residual of 1.4 on a simulated run); it takes out every observation above the
+    critical value on separate stations in one round, so all control points at once; and a point
+    that alone carries some direction (a weak geometry) is never rejected there, so a good point
+    was rejected in place of the wrong one."""
+    if not network.datum.controls or not config.data_snooping or len(network.datum.controls) < 2:
         return network
-    strict = dataclasses.replace(config, variance_components=False)
+    plain = dataclasses.replace(config, variance_components=False, data_snooping=False)
     held_elsewhere = bool(network.datum.fixed.any() or network.datum.observations)
+    critical = float(stats.chi2.ppf(1.0 - config.alpha, 3))
     rejected: list[tuple[str, float]] = []
     while len(rejected) < config.max_rejections:
-        result = adjust_block(network.initial_poses, network.observations(rates, previous), network.datum.fixed,
-                              strict, progress)
-        tests = {t.index: t for t in result.tests}
+        controls = network.datum.controls
         scores = {}
-        for k, index in enumerate(network.control_indices()):
-            t = tests.get(index)
-            if (t is None or t.rejected or not np.isfinite(t.statistic) or t.redundancy <= 0.05
-                    or t.min_redundancy < 0.02):
-                continue
-            critical = float(stats.chi2.ppf(1.0 - config.alpha, t.dof))
-            if t.statistic > critical:
-                scores[k] = (t.statistic / critical, t.normalised)
-        if not scores:
+        for k in range(len(controls)):
+            others = controls[:k] + controls[k + 1:]
+            if not held_elsewhere and len(free_rotations(others)[0]):
+                continue  # without it the rest would not hold the datum: it cannot be tested against them
+            without = dataclasses.replace(network, datum=dataclasses.replace(network.datum, controls=others))
+            result = adjust_block(without.initial_poses, without.observations(rates, previous), without.datum.fixed,
+                                  plain, progress)
+            scores[k] = _leave_one_out(controls[k], result, network, rates)
+        worst = max(scores, key=lambda k: scores[k], default=None)
+        if worst is None or not scores[worst] > critical:
             break
-        worst = max(scores, key=lambda k: scores[k][0])
-        kept = tuple(c for k, c in enumerate(network.datum.controls) if k != worst)
-        name = network.datum.controls[worst].name
-        if not kept or (len(free_rotations(kept)[0]) and not held_elsewhere):
-            log.warning("control point %s does not fit (normalised residual %.1f), but without it the control points "
-                        "would not fix the datum: kept", name, scores[worst][1])
-            break
-        log.warning("control point %s rejected by data snooping (normalised residual %.1f against its sigma)", name,
-                    scores[worst][1])
-        rejected.append((name, scores[worst][1]))
-        network = dataclasses.replace(network, datum=dataclasses.replace(network.datum, controls=kept))
+        name = controls[worst].name
+        normalised = float(np.sqrt(scores[worst] / 3.0))
+        log.warning("control point %s rejected: it does not fit the network and the other control points (normalised "
+                    "residual %.1f against its sigma)", name, normalised)
+        rejected.append((name, normalised))
+        network = dataclasses.replace(network, datum=dataclasses.replace(
+            network.datum, controls=controls[:worst] + controls[worst + 1:]))
     if not rejected:
         return network
     names = ", ".join(name for name, _ in rejected)
     datum = dataclasses.replace(network.datum, description=f"{network.datum.description}; control point(s) {names} "
                                 "rejected", rejected_controls=network.datum.rejected_controls + tuple(rejected))
     return dataclasses.replace(network, datum=datum)
+
+
+def _leave_one_out(tie: ControlTie, result: BlockResult, network: Network, rates: DriftRates) -> float:
+    """The test statistic of control point ``tie`` against ``result`` (adjusted without it)."""
+    observation = control_observations([tie], network.stations, rates, result)[0]
+    T = result.poses[tie.station]
+    J = T.rotation_matrix @ np.hstack([np.eye(3), -skew(tie.q_scan)])
+    d = T.apply(tie.q_scan[None, :])[0] - tie.xyz
+    # the observation's covariance C: its information is J^T C^-1 J, so C = (J P^+ J^T)^+ ... formed
+    # directly instead: the survey's plus the trajectory's over the time to the station
+    C = _observation_covariance(observation.info, J)
+    return float(d @ np.linalg.solve(C + J @ result.cov_xi[tie.station] @ J.T, d))
+
+
+def _observation_covariance(info: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """The 3x3 covariance C of a control observation whose information is ``J^T C^-1 J``."""
+    J_pinv = np.linalg.pinv(J)  # J J_pinv = I (J has full row rank)
+    return np.linalg.inv(J_pinv.T @ info @ J_pinv)
 
 
 def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
