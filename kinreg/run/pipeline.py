@@ -393,8 +393,9 @@ def write_tables(out: Path, report: dict[str, Any], network: Network, result: Bl
     write_text(out / "links.csv", format_links_csv(links_table(network.links, result)))
     write_text(out / "config.toml", report["config_toml"])
     write_text(out / "report.html", render_html(report, base_dir=figures_dir or out))
-    if "control" in report or "check" in report:
-        write_text(out / "control_points.csv", format_control_points_csv(report))
+    # always written (only its header without --control/--check): every name in OUTPUT_FILES is
+    # in every finished run's folder, so that no file of an earlier run is left there
+    write_text(out / "control_points.csv", format_control_points_csv(report))
 
 
 def read_points(inputs: ProcessInputs, trajectories: Sequence[Trajectory], references: ReferencePlanes | None,
