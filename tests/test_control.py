@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from clirunner import run_cli
 from conftest import write_synthetic_run
+
 from kinreg.config import BlockConfig, ControlConfig, KinregConfig
 from kinreg.errors import InputError
 from kinreg.estimate.block import adjust_block
@@ -91,7 +91,8 @@ def test_stand_stills_are_found_and_points_assigned_one_to_one():
     assignment = assign_points(points, [traj], ControlConfig())
     assert assignment.names == ("P1", "P2")
     assert [s.t_s for s in assignment.stand_stills] == [found[0].t_s, found[1].t_s]
-    assert len(assignment.problems) == 1 and "FAR" in assignment.problems[0] and "within 0.5 m" in assignment.problems[0]
+    assert len(assignment.problems) == 1
+    assert "FAR" in assignment.problems[0] and "within 0.5 m" in assignment.problems[0]
 
 
 def test_ambiguous_points_are_left_out_and_nothing_left_is_an_error():

@@ -30,7 +30,7 @@ import numpy as np
 from kinreg.config import ControlConfig
 from kinreg.errors import InputError
 from kinreg.estimate.drift import DriftRates, window_bias_covariance
-from kinreg.geometry import FloatArray, Pose, quat_multiply, quat_to_rotvec, quat_conjugate, skew
+from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_multiply, quat_to_rotvec, skew
 from kinreg.io.control import ControlPoints
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation, ScanKind, Station, Trajectory
 

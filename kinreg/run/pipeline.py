@@ -34,9 +34,9 @@ from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.control import Assignment, assign_points, tie_points
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import build_network
-from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
+from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import shorter_window_s, window_smear_m
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.checks import check_inputs, time_filter

@@ -185,8 +185,9 @@ def write_run(run: SimulatedRun, out_dir: str | os.PathLike[str], progress: Any 
     ``run_trajectory.txt`` (drifted, GeoSLAM), ``run_cloud.laz``, ``truth_trajectory.txt``,
     ``truth_scene.json``, ``static.e57``, ``static_truth.json``, ``reference.toml``,
     ``run_meta.json``, and with stand-stills in the walk ``control.csv`` (surveyed control points,
-    :func:`control_csv`) and ``control_truth.csv`` (their true coordinates). Each file is written under a temporary name and renamed. ``progress``
-    is a :class:`kinreg.progress.Progress` (advanced per cloud block) or ``None``.
+    :func:`control_csv`) and ``control_truth.csv`` (their true coordinates). Each file is written
+    under a temporary name and renamed. ``progress`` is a :class:`kinreg.progress.Progress`
+    (advanced per cloud block) or ``None``.
     """
     from kinreg.progress import NullProgress
 
