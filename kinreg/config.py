@@ -205,6 +205,32 @@ class ReferenceConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class ControlConfig:
+    """``[control]``: control and check points the unit stood on (``--control``, ``--check``;
+    :mod:`kinreg.estimate.control`)."""
+
+    # The point of the unit that touches the control point, in the platform (trajectory) frame [m].
+    reference_point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # A stand-still: speed and rotation rate (over smoothing_s) below these for at least min_still_s.
+    min_still_s: float = 2.0
+    max_speed_mps: float = 0.02
+    max_rotation_deg_per_s: float = 2.0
+    smoothing_s: float = 0.5
+    gate_m: float = 0.5  # a point is assigned to the nearest stand-still within this distance ...
+    ambiguity_ratio: float = 3.0  # ... if the second nearest is this much farther, else it is ambiguous
+    # With one or two control points and no other datum, the rotations they leave free are held
+    # at the first station's: the datum observation's standard deviation [rad] (tiny: a datum).
+    free_rotation_sigma_rad: float = 1e-6
+
+    def __post_init__(self) -> None:
+        r = self.reference_point_m
+        if not isinstance(r, list | tuple) or len(r) != 3 or any(
+                isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) for v in r):
+            raise ConfigError(f"[control] reference_point_m: expected three numbers [x, y, z], got {r!r}")
+        object.__setattr__(self, "reference_point_m", tuple(float(v) for v in r))
+
+
+@dataclasses.dataclass(frozen=True)
 class DiscontinuityConfig:
     """``[jumps]``: gross errors of the trajectory, found in the trajectory itself
     (:func:`kinreg.estimate.jumps.detect_jumps`). A jump (a SLAM failure: the trajectory steps by
@@ -286,6 +312,7 @@ class KinregConfig:
     static: StaticConfig = dataclasses.field(default_factory=StaticConfig)
     reference: ReferenceConfig = dataclasses.field(default_factory=ReferenceConfig)
     jumps: DiscontinuityConfig = dataclasses.field(default_factory=DiscontinuityConfig)
+    control: ControlConfig = dataclasses.field(default_factory=ControlConfig)
     report: ReportConfig = dataclasses.field(default_factory=ReportConfig)
 
 

@@ -171,6 +171,11 @@ def process_command(
     out_dir: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
     static: Annotated[Path | None, typer.Option("--static", help="Registered static scans (E57 with poses).")] = None,
     reference: Annotated[Path | None, typer.Option("--reference", help="Reference planes (TOML).")] = None,
+    control: Annotated[Path | None, typer.Option(
+        "--control", help="Control points (CSV name,x,y,z,sigma_mm[,t_start,t_end]): surveyed points the unit stood "
+        "on, observed in the adjustment.")] = None,
+    check: Annotated[Path | None, typer.Option(
+        "--check", help="Check points (same CSV format): only compared with the corrected trajectory.")] = None,
     config: ConfigOption = None,
     window_s: WindowOption = None,
     overwrite: Annotated[
@@ -187,7 +192,7 @@ def process_command(
     from kinreg.run.pipeline import ProcessInputs, process
 
     cfg = _config(config, {"slicing.window_s": window_s})
-    inputs = ProcessInputs.from_runs(trajectory, cloud, static, reference)
+    inputs = ProcessInputs.from_runs(trajectory, cloud, static, reference, control, check)
     summary = process(inputs, out_dir, cfg, overwrite=overwrite, progress=RichProgress(console), workers=workers,
                       scheduler=scheduler, resume=resume)
     verdict = "passed" if summary.global_test_passed else "FAILED (sigmas scaled by sigma0)"
@@ -199,6 +204,12 @@ def process_command(
         ("position sigma", f"RMS {summary.position_sigma_rms_mm:.1f} mm, max {summary.position_sigma_max_mm:.1f} mm"),
         ("gaps before/after", f"mean {summary.gaps_mean_mm:.1f} mm, max {summary.gaps_max_mm:.1f} mm"),
         ("rejected observations", f"{summary.n_rejected}"),
+    ]
+    if summary.control_rejected is not None:
+        rows.append(("control points rejected", ", ".join(summary.control_rejected) or "none"))
+    if summary.check_rms_mm is not None:
+        rows.append(("check points", f"3D RMS {summary.check_rms_mm:.1f} mm ({summary.check_loa})"))
+    rows += [
         ("time", ", ".join(f"{k} {v:.1f} s" for k, v in summary.timings_s.items())),
     ]
     reused = {k: v for k, v in summary.stage_cache.items() if v["reused"]}

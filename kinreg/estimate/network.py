@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
+from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.estimate.pairwise import adjust_pair
@@ -165,12 +166,18 @@ def block_observations(
 @dataclass(frozen=True, eq=False)
 class Datum:
     """How the network is held: stations held fixed, datum observations (observed static scans,
-    tie planes to reference planes), and what they are, in words for the report."""
+    tie planes to reference planes), control points (observations of their stations, formed with
+    the drift rates of each pass: :func:`~kinreg.estimate.control.control_observations`), and what
+    they are, in words for the report."""
 
     fixed: NDArray[np.bool_]
     observations: tuple[RelativeObservation, ...]
     description: str
     ties: tuple[Tie, ...] = ()
+    controls: tuple[ControlTie, ...] = ()
+    # control points rejected by their screening (kinreg.estimate.datum.screen_control_points):
+    # name and the normalised residual they had
+    rejected_controls: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,8 +195,18 @@ class Network:
 
     def observations(self, rates: DriftRates, previous: BlockResult | None = None) -> list[RelativeObservation]:
         """The block's observations with the trajectory's links weighted by ``rates`` (and coupled
-        through a ``previous`` adjustment, :func:`block_observations`), and the datum's."""
-        return block_observations(self.stations, self.links, rates, previous) + list(self.datum.observations)
+        through a ``previous`` adjustment, :func:`block_observations`), and the datum's; the
+        control points' come last, in the order of ``datum.controls``
+        (:meth:`control_indices`)."""
+        return (block_observations(self.stations, self.links, rates, previous) + list(self.datum.observations)
+                + control_observations(self.datum.controls, self.stations, rates, previous))
+
+    def control_indices(self, rates: DriftRates) -> range:
+        """The positions of the control points' observations in :meth:`observations` with ``rates``
+        (whose drift model decides how many observations the trajectory gives)."""
+        n = len(block_observations(self.stations, self.links, rates))
+        first = n + len(self.datum.observations)
+        return range(first, first + len(self.datum.controls))
 
     def with_links(self, links: Sequence[Link]) -> Network:
         return replace(self, links=tuple(links))

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from kinreg.report.cloud_html import cloud_section, thickness_figure
+from kinreg.report.control import control_html
 from kinreg.report.plots import _plot_correction, _plot_histograms, _plot_links, _plot_plan, _plot_sigma_time, _rows
 from kinreg.report.text import DASH, _count, _duration, _esc, _fmt, _get, _number, _numbers, _plain, _tag
 
@@ -327,6 +328,7 @@ def render_html(report: dict[str, Any], base_dir: str | Path | None = None) -> s
         _tag("div", _section_inputs(report) + _key_figures(report) + _drift_and_links(report)
              + _timings(report), class_="cards"),
         _rejected_table(report),
+        control_html(report),
         _tag("h2", "Plots"),
         _plots(report),
         cloud_section(report, None if base_dir is None else Path(base_dir)),

@@ -31,16 +31,22 @@ from kinreg.config import (
     format_toml,
 )
 from kinreg.errors import AdjustmentFailedError, ConfigError
+from kinreg.estimate.control import Assignment, assign_points, tie_points
+from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import build_network
+from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
+from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import shorter_window_s, window_smear_m
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
+from kinreg.io.control import read_control_points
 from kinreg.io.reference_planes import ReferencePlanes, read_reference_planes
 from kinreg.progress import NullProgress, Progress
 from kinreg.report.cloud_views import FIGURES_DIR, cloud_views_for_runs
+from kinreg.report.control import check_section, control_section, format_control_points_csv
 from kinreg.report.html import render_html
 from kinreg.report.json import build_failure_report, build_report, write_report_json
 from kinreg.report.tables import (
@@ -139,6 +145,8 @@ class ProcessInputs:
     static: Path | None = None
     reference: Path | None = None
     more_runs: tuple[RunInputs, ...] = ()
+    control: Path | None = None  # control points (CSV): observations of the adjustment
+    check: Path | None = None  # check points (CSV): only compared
 
     @property
     def runs(self) -> tuple[RunInputs, ...]:
@@ -146,7 +154,8 @@ class ProcessInputs:
 
     @classmethod
     def from_runs(cls, trajectories: Sequence[str | Path], clouds: Sequence[str | Path],
-                  static: Path | None = None, reference: Path | None = None) -> ProcessInputs:
+                  static: Path | None = None, reference: Path | None = None, control: Path | None = None,
+                  check: Path | None = None) -> ProcessInputs:
         """Runs paired in order: ``trajectories[k]`` with ``clouds[k]``. Raises :class:`ConfigError`
         when the counts differ, none is given, or a file is given twice."""
         if len(trajectories) != len(clouds):
@@ -160,7 +169,7 @@ class ProcessInputs:
             twice = next((path for k, path in enumerate(paths) if seen[k] in seen[:k]), None)
             if twice is not None:
                 raise ConfigError("given for two runs", twice)
-        return cls(runs[0].trajectory, runs[0].cloud, static, reference, tuple(runs[1:]))
+        return cls(runs[0].trajectory, runs[0].cloud, static, reference, tuple(runs[1:]), control, check)
 
 
 @dataclass(frozen=True)
@@ -181,6 +190,9 @@ class ProcessSummary:
     # per stage: {"reused": n, "computed": m} items (scans, files) of this run
     stage_cache: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
     n_runs: int = 1
+    control_rejected: tuple[str, ...] | None = None  # None: no control points given
+    check_rms_mm: float | None = None  # 3D RMS of the check differences; None: no check points
+    check_loa: str = ""
 
     @classmethod
     def from_report(cls, out_dir: Path, report: dict[str, Any]) -> ProcessSummary:
@@ -200,6 +212,9 @@ class ProcessSummary:
             timings_s=report["timings_s"],
             stage_cache=report["stage_cache"],
             n_runs=len(report["inputs"]["runs"]),
+            control_rejected=tuple(report["control"]["rejected"]) if "control" in report else None,
+            check_rms_mm=report["check"]["summary"]["d3d_mm"]["rms"] if "check" in report else None,
+            check_loa=report["check"]["loa"]["class"] if "check" in report else "",
         )
 
 
@@ -218,7 +233,7 @@ class StageClock:
 
 
 OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "corrected.laz", "sequence.e57",
-                "report.json", "report.html", "config.toml")
+                "report.json", "report.html", "config.toml", "control_points.csv")
 
 
 @contextlib.contextmanager
@@ -244,9 +259,10 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
         references = read_reference_planes(inputs.reference) if inputs.reference is not None else None
         static = config.static if inputs.static is not None else None
         trajectories = read_run_trajectories(runs, config.input, inputs.static)
+        control, check = read_points(inputs, trajectories, references, config)  # before the long work
         executor = stack.enter_context(make_executor(workers, scheduler))
         est, config = estimate_quasi_static(stack, folder, inputs, trajectories, references, config, progress,
-                                            executor, clock)
+                                            executor, clock, control)
         sliced, kinematic, stations, planes, adjusted = (est.sliced, est.kinematic, est.stations, est.planes,
                                                          est.adjusted)
         corrections = [run_correction(stations, adjusted.result, k, kinematic.trajectories[k], kinematic.jumps[k])
@@ -271,6 +287,10 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
             alpha=config.block.alpha, timings_s=clock.timings_s,
             trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
             cloud_views=views.finish(out))  # "cloud" and "crs"; the PNGs go straight into out/figures
+        report.update(points_report(adjusted.network, adjusted.result, adjusted.rates, control, check,
+                                    kinematic.trajectories,
+                                    corrections, config))
+        report["inputs"].update({k: str(p) for k, p in (("control", inputs.control), ("check", inputs.check)) if p})
         write_tables(staging, report, adjusted.network, adjusted.result, planes, figures_dir=out)
         clock.lap("reports")
         write_report_json(staging / "report.json", report)
@@ -294,25 +314,27 @@ class EstimatedNetwork:
 
 def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                           trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
-                          progress: Progress, executor: ExecutorContext,
-                          clock: StageClock) -> tuple[EstimatedNetwork, KinregConfig]:
+                          progress: Progress, executor: ExecutorContext, clock: StageClock,
+                          control: Assignment | None = None) -> tuple[EstimatedNetwork, KinregConfig]:
     """:func:`estimate_network`; where the measured drift smears the planes of its windows
     (:func:`~kinreg.estimate.slicing.shorter_window_s`), once more with shorter windows. Returns
     the result and the configuration it was made with."""
-    est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock)
+    est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
+                           control)
     window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing)
     if window is None:
         return est, config
     log.warning("the drift smears the planes by %.1f mm over half a window (median): sliced again with %.1f s "
                 "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), window, config.slicing.window_s)
     again = estimate_network(stack, folder, inputs, trajectories, references, with_window(config, window), progress,
-                             executor, clock)
+                             executor, clock, control)
     return dataclasses.replace(again, first_window_s=config.slicing.window_s), with_window(config, window)
 
 
 def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                      trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
-                     progress: Progress, executor: ExecutorContext, clock: StageClock) -> EstimatedNetwork:
+                     progress: Progress, executor: ExecutorContext, clock: StageClock,
+                     control: Assignment | None = None) -> EstimatedNetwork:
     """Slice every run (its spill kept open on ``stack``), detect planes (and the static scans'),
     link and adjust: the stages of :func:`process` before the outputs, each through the stage cache."""
     runs, static = inputs.runs, config.static if inputs.static is not None else None
@@ -326,7 +348,8 @@ def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: Proc
     clock.lap("planes")
     links = link_stations_cached(stations, planes, config, static, progress, executor, folder)
     clock.lap("link")
-    network = build_network(stations, planes, links, references, static, config)
+    controls = () if control is None else tie_points(control, stations, kinematic.trajectories, config.control)
+    network = build_network(stations, planes, links, references, static, config, controls)
     adjusted = adjust_or_fail(network, planes, static, config, progress, executor, folder,
                               inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference))
     folder.count("block", computed=1)
@@ -372,6 +395,41 @@ def write_tables(out: Path, report: dict[str, Any], network: Network, result: Bl
     write_text(out / "links.csv", format_links_csv(links_table(network.links, result)))
     write_text(out / "config.toml", report["config_toml"])
     write_text(out / "report.html", render_html(report, base_dir=figures_dir or out))
+    # always written (only its header without --control/--check): every name in OUTPUT_FILES is
+    # in every finished run's folder, so that no file of an earlier run is left there
+    write_text(out / "control_points.csv", format_control_points_csv(report))
+
+
+def read_points(inputs: ProcessInputs, trajectories: Sequence[Trajectory], references: ReferencePlanes | None,
+                config: KinregConfig) -> tuple[Assignment | None, Assignment | None]:
+    """The control and check points (``--control``, ``--check``), each with its stand-still on the
+    trajectories (moved into the reference frame, as the stations will be); ``None`` where not
+    given. Raises :class:`~kinreg.errors.InputError` for a bad file or one whose points tie to
+    nothing."""
+    moved = [to_reference_frame([], t, references)[1] for t in trajectories]
+    found = []
+    for path, what in ((inputs.control, "control"), (inputs.check, "check")):
+        found.append(None if path is None else assign_points(read_control_points(path), moved, config.control, what))
+    if found[0] is not None and found[1] is not None and set(found[0].names) & set(found[1].names):
+        both = ", ".join(sorted(set(found[0].names) & set(found[1].names))[:5])
+        raise ConfigError(f"point(s) {both} are both control and check points: a check point must stay out of the "
+                          "adjustment", inputs.check)
+    return found[0], found[1]
+
+
+def points_report(network: Network, result: BlockResult, rates: DriftRates, control: Assignment | None,
+                  check: Assignment | None,
+                  trajectories: Sequence[Trajectory], corrections: Sequence[DriftCorrection],
+                  config: KinregConfig) -> dict[str, Any]:
+    """``report.json``'s ``control`` and ``check`` sections (only those given)."""
+    reference = np.asarray(config.control.reference_point_m)
+    out: dict[str, Any] = {}
+    if control is not None:
+        out["control"] = control_section(network, result, rates, control, trajectories, corrections, reference,
+                                         config.block.alpha)
+    if check is not None:
+        out["check"] = check_section(check, trajectories, corrections, reference)
+    return out
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from kinreg.config import (
 )
 from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.correction import DriftCorrection
-from kinreg.estimate.datum import adjust_network, take_out_jumps
+from kinreg.estimate.datum import adjust_network, screen_control_points, take_out_jumps
 from kinreg.estimate.drift import (
     DriftRates,
     deskewed_planes,
@@ -232,7 +232,9 @@ def adjust_with_measured_drift(
                                              measure_correlation=False), correlation_s=correlation)
         if same:
             break
-    # The last pass: the trajectory's links coupled with the measured coupling and rates.
+    # Control points tested against their own sigmas, then the last pass: the trajectory's links
+    # coupled with the measured coupling and rates.
+    network = screen_control_points(network, rates, config.block, progress, previous=result)
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     _warn_trajectory_misfits(result, config.block.alpha)
     return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)

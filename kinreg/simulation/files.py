@@ -120,6 +120,26 @@ def reference_planes_toml(run: SimulatedRun, plane_construction_accuracy_m: floa
     return "\n".join(lines) + "\n"
 
 
+def control_csv(run: SimulatedRun, noise: bool = True, times: bool = False, moved: dict[str, Any] | None = None,
+                names: Sequence[str] | None = None) -> str:
+    """The stand-stills' control points as a kinreg control file (``name,x,y,z,sigma_mm``, with
+    ``t_start,t_end`` if ``times``): surveyed (``noise``) or true coordinates of the platform
+    origin. ``moved`` maps a name to an offset [m] added to its coordinates (a wrong point);
+    ``names`` keeps only those points (in their order). Points are named ``CP01``, ``CP02``, ..."""
+    intervals, xyz = run.control_points(noise=noise)
+    header = "name,x,y,z,sigma_mm" + (",t_start,t_end" if times else "")
+    rows = {}
+    for k in range(len(xyz)):
+        name = f"CP{k + 1:02d}"
+        p = xyz[k] + np.asarray((moved or {}).get(name, (0.0, 0.0, 0.0)), dtype=np.float64)
+        row = f"{name},{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{run.config.control_sigma_mm:g}"
+        if times:
+            row += f",{intervals[k, 0]:.3f},{intervals[k, 1]:.3f}"
+        rows[name] = row
+    chosen = list(rows) if names is None else list(names)
+    return "\n".join([header] + [rows[n] for n in chosen]) + "\n"
+
+
 def scene_as_dict(run: SimulatedRun) -> dict[str, Any]:
     """truth_scene.json content: planes and patches in the output object frame."""
     o = run.origin
@@ -164,8 +184,10 @@ def write_run(run: SimulatedRun, out_dir: str | os.PathLike[str], progress: Any 
 
     ``run_trajectory.txt`` (drifted, GeoSLAM), ``run_cloud.laz``, ``truth_trajectory.txt``,
     ``truth_scene.json``, ``static.e57``, ``static_truth.json``, ``reference.toml``,
-    ``run_meta.json``. Each file is written under a temporary name and renamed. ``progress``
-    is a :class:`kinreg.progress.Progress` (advanced per cloud block) or ``None``.
+    ``run_meta.json``, and with stand-stills in the walk ``control.csv`` (surveyed control points,
+    :func:`control_csv`) and ``control_truth.csv`` (their true coordinates). Each file is written
+    under a temporary name and renamed. ``progress`` is a :class:`kinreg.progress.Progress`
+    (advanced per cloud block) or ``None``.
     """
     from kinreg.progress import NullProgress
 
@@ -180,6 +202,10 @@ def write_run(run: SimulatedRun, out_dir: str | os.PathLike[str], progress: Any 
     _write_text(files["truth_scene.json"], json.dumps(scene_as_dict(run), indent=1) + "\n")
     _write_text(files["reference.toml"], reference_planes_toml(run))
     write_static_e57(files["static.e57"], run.static_scans)
+    if len(run.stand_stills()):
+        files["control.csv"], files["control_truth.csv"] = out / "control.csv", out / "control_truth.csv"
+        _write_text(files["control.csv"], control_csv(run))
+        _write_text(files["control_truth.csv"], control_csv(run, noise=False, times=True))
     _write_text(files["static_truth.json"], json.dumps({
         "schema_version": SIMULATION_SCHEMA_VERSION,
         "file": "static.e57",

@@ -28,7 +28,7 @@ from kinreg.simulation.sensor import (
     _interpolate_fast,
     make_static_scans,
 )
-from kinreg.simulation.walk import WalkConfig, make_walk
+from kinreg.simulation.walk import WalkConfig, make_walk, stand_still_intervals
 from kinreg.types import Scan, Trajectory
 
 logger = logging.getLogger(__name__)
@@ -54,6 +54,9 @@ class SimulationConfig:
     static: StaticConfig = field(default_factory=StaticConfig)
     origin_xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
     block_s: float = 10.0  # the cloud is generated in blocks of this much scanning time
+    # The surveyed coordinates of the control points at the walk's stand-stills (control.csv) carry
+    # a survey error of this standard deviation per axis; control_truth.csv holds the true ones.
+    control_sigma_mm: float = 3.0
 
 
 def config_as_dict(config: SimulationConfig) -> dict[str, Any]:
@@ -156,6 +159,23 @@ class SimulatedRun:
         """The scene's planes in the output object frame (``origin_xyz`` applied)."""
         o = self.origin
         return [dataclasses.replace(p, d=float(p.d + p.normal @ o)) for p in self.scene.planes()]
+
+    def stand_stills(self) -> FloatArray:
+        """The (start, end) times (k, 2) of the walk's stand-stills (the unit on a control point)."""
+        return stand_still_intervals(self.config.walk, self.config.duration_s, self.config.t0_s)
+
+    def control_points(self, reference_point_m: FloatArray | None = None,
+                       noise: bool = True) -> tuple[FloatArray, FloatArray]:
+        """Per stand-still: its (start, end) times (k, 2) and the position (k, 3) of the platform
+        point ``reference_point_m`` (platform frame, default its origin) there, in the object
+        frame: the true one, plus (``noise``) a survey error of ``config.control_sigma_mm`` per
+        axis (its own random stream: the walk, drift and cloud do not change with it)."""
+        intervals = self.stand_stills()
+        r = np.zeros(3) if reference_point_m is None else np.asarray(reference_point_m, dtype=np.float64)
+        xyz = self.truth.pose_at(intervals.mean(axis=1)).apply(np.broadcast_to(r, (len(intervals), 3)))
+        if noise:
+            xyz = xyz + 1e-3 * self.config.control_sigma_mm * _rng(self.config.seed, 5).standard_normal(xyz.shape)
+        return intervals, xyz
 
     def drift_at_end(self) -> tuple[float, float]:
         """(position difference slam - truth in metres, drift rotation angle in degrees) at the end."""

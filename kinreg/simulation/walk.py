@@ -11,6 +11,7 @@ import numpy as np
 from kinreg.geometry import (
     FloatArray,
     Pose,
+    interpolate_poses,
     make_quat_continuous,
     matrix_to_quat,
 )
@@ -44,6 +45,12 @@ class WalkConfig:
     carry_roll_deg: float = 10.0  # slow rotation about the carrying (x) axis
     carry_period_s: float = 23.0
     jitter_deg: float = 1.5  # smooth random hand jitter (1 sigma)
+    # Stand-stills on control points: the unit is held still (no motion at all) this many times,
+    # spread evenly in time over the walk, each for stand_still_s seconds, with smooth stops and
+    # starts of stand_still_ramp_s. 0 keeps the walk exactly as without them.
+    stand_stills: int = 0
+    stand_still_s: float = 4.0
+    stand_still_ramp_s: float = 1.0
 
 
 def _rot_z(a: FloatArray) -> FloatArray:
@@ -109,8 +116,54 @@ def _resample_polyline(pts: FloatArray, step_m: float) -> FloatArray:
     return np.stack([np.interp(q, s, pts[:, 0]), np.interp(q, s, pts[:, 1])], axis=1)
 
 
+def stand_still_intervals(config: WalkConfig, duration_s: float, t0_s: float) -> FloatArray:
+    """The (start, end) times (k, 2) [s] of the walk's stand-stills (:class:`WalkConfig`): spread
+    evenly over the walk between the pauses at its ends; empty without stand-stills."""
+    n = config.stand_stills
+    if n <= 0:
+        return np.zeros((0, 2))
+    lo = config.pause_s + 2.0 + config.stand_still_ramp_s
+    hi = duration_s - config.pause_s - 2.0 - config.stand_still_ramp_s
+    slot = (hi - lo) / n
+    if slot < config.stand_still_s + 2.0 * config.stand_still_ramp_s + 1.0:
+        raise ValueError(f"{n} stand-stills of {config.stand_still_s} s do not fit into a {duration_s} s walk")
+    mid = lo + slot * (np.arange(n) + 0.5)
+    return t0_s + np.column_stack([mid - 0.5 * config.stand_still_s, mid + 0.5 * config.stand_still_s])
+
+
+def _walk_time(tr: FloatArray, config: WalkConfig, duration_s: float) -> FloatArray:
+    """The walk's own time at the real times ``tr`` (relative, s): it stops during the stand-stills
+    and slows down to them and up from them with a raised-cosine speed over the ramps."""
+    intervals = stand_still_intervals(config, duration_s, 0.0)
+    rate = np.ones_like(tr)
+    ramp = config.stand_still_ramp_s
+    for a, b in intervals:
+        into = np.clip((a - tr) / ramp, 0.0, 1.0)  # 1 before the ramp down, 0 from the stop
+        out = np.clip((tr - b) / ramp, 0.0, 1.0)  # 0 until the start, 1 after the ramp up
+        factor = np.where(tr < a, 0.5 - 0.5 * np.cos(np.pi * into), np.where(tr > b, 0.5 - 0.5 * np.cos(np.pi * out),
+                                                                              0.0))
+        rate = rate * factor
+    dt = np.diff(tr, prepend=tr[0])
+    return np.cumsum(0.5 * (rate + np.concatenate([[rate[0]], rate[:-1]])) * dt)
+
+
 def make_walk(scene: Scene, config: WalkConfig, duration_s: float, t0_s: float,
               rng: np.random.Generator) -> Trajectory:
+    """The true trajectory ``T_obj_p`` at ``config.rate_hz`` over ``duration_s`` seconds, with
+    ``config.stand_stills`` stand-stills (:func:`stand_still_intervals`): the walk of the
+    remaining time, its own clock stopped during them (the pose is exactly constant there)."""
+    if config.stand_stills <= 0:
+        return _make_moving_walk(scene, config, duration_s, t0_s, rng)
+    n = round(duration_s * config.rate_hz) + 1
+    tr = np.arange(n) / config.rate_hz
+    tw = _walk_time(tr, config, duration_s)
+    moving = _make_moving_walk(scene, config, float(np.ceil(tw[-1] * config.rate_hz) / config.rate_hz), 0.0, rng)
+    poses = interpolate_poses(moving.stamps_s, moving.poses, np.minimum(tw, moving.stamps_s[-1]))
+    return Trajectory(t0_s + tr, Pose(make_quat_continuous(poses.quat_wxyz), poses.t_xyz), source="simulated truth")
+
+
+def _make_moving_walk(scene: Scene, config: WalkConfig, duration_s: float, t0_s: float,
+                      rng: np.random.Generator) -> Trajectory:
     """The true trajectory ``T_obj_p`` at ``config.rate_hz`` over ``duration_s`` seconds.
 
     The path (rounded corners) visits every room of ``scene.walk_plan`` and returns next to the

@@ -1,0 +1,239 @@
+"""Control and check points (METHOD.md section 2, item 10): surveyed points the unit stood on.
+
+A *stand-still* is a stretch of the trajectory whose speed and rotation rate stay below
+``[control] max_speed_mps`` and ``max_rotation_deg_per_s`` (over ``smoothing_s``) for at least
+``min_still_s``; the unit's ``reference_point_m`` (platform frame) touches the point there. A
+point with ``t_start,t_end`` uses that interval; one without is assigned to the nearest
+stand-still within ``gate_m`` (one to one; ambiguous or unassigned points are named and left out).
+
+A control point becomes one observation the block already understands: a direct observation
+(``ObservationKind.STATION``) of the pose of the quasi-static station nearest in time, with a
+rank-3 information. With ``q`` the reference point at the stand-still's mean time in that
+station's scan frame (from the trajectory's own relative pose between the two times, interpolated
+as the corrected trajectory is), the point in the object frame is ``X = R_k q + t_k``; for
+``T_k = Z exp(e)``, ``e = (rho, phi)``, ``X ~ X_Z + R_Z (rho - [q]x phi)``, so the information is
+``J^T C^-1 J`` with ``J = R_Z [I, -[q]x]`` and ``C`` the survey's ``sigma^2`` per axis plus the
+reference point's scatter over the stand-still plus the trajectory's drift over the time to the
+station and the station's window bias, both carried through ``J``. ``Z`` has the rotation of the
+current station pose and the translation ``X_control - R_Z q``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from kinreg.config import ControlConfig
+from kinreg.errors import InputError
+from kinreg.estimate.drift import DriftRates, window_bias_covariance
+from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_multiply, quat_to_rotvec, skew
+from kinreg.io.control import ControlPoints
+from kinreg.types import BlockResult, ObservationKind, RelativeObservation, ScanKind, Station, Trajectory
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class StandStill:
+    """A stretch of one run's trajectory where the unit stood still: its interval and mean time
+    [s], the reference point's mean position (3,) [m] in the trajectory's frame and its scatter
+    (3, 3) [m^2] over the stretch."""
+
+    run: int
+    t_start_s: float
+    t_end_s: float
+    t_s: float
+    xyz: FloatArray
+    scatter_m2: FloatArray
+
+
+def stand_still_between(trajectory: Trajectory, t_start_s: float, t_end_s: float, reference_point_m: FloatArray,
+                        run: int = 0) -> StandStill:
+    """The stand-still of ``trajectory`` over the given interval (its rows inside it; at least
+    the interpolated poses at both ends)."""
+    inside = (trajectory.stamps_s >= t_start_s) & (trajectory.stamps_s <= t_end_s)
+    stamps = np.union1d(trajectory.stamps_s[inside], [t_start_s, t_end_s])
+    points = trajectory.pose_at(stamps).apply(np.broadcast_to(reference_point_m, (len(stamps), 3)))
+    centred = points - points.mean(axis=0)
+    return StandStill(run, float(t_start_s), float(t_end_s), float(stamps.mean()), points.mean(axis=0),
+                      centred.T @ centred / len(points))
+
+
+def find_stand_stills(trajectory: Trajectory, config: ControlConfig, run: int = 0) -> list[StandStill]:
+    """Every stretch of ``trajectory`` where the unit stood still (see the module's docstring)."""
+    t = trajectory.stamps_s
+    if len(t) < 3:
+        return []
+    reference = np.asarray(config.reference_point_m)
+    points = trajectory.poses.apply(np.broadcast_to(reference, (len(t), 3)))
+    # Rates over +-smoothing_s/2 around each row (the rows' own noise averages out).
+    lo = np.searchsorted(t, t - 0.5 * config.smoothing_s)
+    hi = np.minimum(np.searchsorted(t, t + 0.5 * config.smoothing_s, side="right") - 1, len(t) - 1)
+    span = np.maximum(t[hi] - t[lo], 1e-9)
+    speed = np.linalg.norm(points[hi] - points[lo], axis=1) / span
+    q_rel = quat_multiply(quat_conjugate(trajectory.poses.quat_wxyz[lo]), trajectory.poses.quat_wxyz[hi])
+    turn = np.degrees(np.linalg.norm(quat_to_rotvec(q_rel), axis=1)) / span
+    still = (speed < config.max_speed_mps) & (turn < config.max_rotation_deg_per_s) & (hi > lo)
+    edges = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    found = []
+    for a, b in zip(starts, ends, strict=True):
+        if t[b] - t[a] >= config.min_still_s:
+            found.append(stand_still_between(trajectory, float(t[a]), float(t[b]), reference, run))
+    return found
+
+
+@dataclass(frozen=True, eq=False)
+class Assignment:
+    """Control points with the stand-still each stands for (the same order as ``names``), and the
+    problems met, one line each (points left out)."""
+
+    names: tuple[str, ...]
+    xyz: FloatArray  # (n, 3) surveyed coordinates [m]
+    sigma_m: FloatArray  # (n,)
+    stand_stills: tuple[StandStill, ...]
+    problems: tuple[str, ...]
+
+
+def assign_points(points: ControlPoints, trajectories: Sequence[Trajectory], config: ControlConfig,
+                  what: str = "control") -> Assignment:
+    """Each point's stand-still: its own interval where the file gives one (an interval outside
+    every run's trajectory raises :class:`InputError`), else the nearest detected stand-still
+    within ``config.gate_m``, one to one. Points that are ambiguous or too far from every
+    stand-still are left out with one line each in ``problems`` (logged as warnings); when no point
+    is left, :class:`InputError` names the file and the reason."""
+    reference = np.asarray(config.reference_point_m)
+    problems: list[str] = []
+    chosen: dict[int, StandStill] = {}
+    detected = [s for k, traj in enumerate(trajectories) for s in find_stand_stills(traj, config, k)]
+    claims: dict[int, list[int]] = {}
+    for n, p in enumerate(points.points):
+        if p.has_times:
+            run = next((k for k, traj in enumerate(trajectories)
+                        if traj.t_start_s <= p.t_start_s and p.t_end_s <= traj.t_end_s), None)
+            if run is None:
+                raise InputError(f"point {p.name}: its interval {p.t_start_s:.3f}-{p.t_end_s:.3f} s is outside the "
+                                 "trajectory's time range" + _ranges(trajectories), points.source)
+            chosen[n] = stand_still_between(trajectories[run], p.t_start_s, p.t_end_s, reference, run)
+            continue
+        if not detected:
+            problems.append(f"{what} point {p.name}: no stand-still found in the trajectory (give t_start,t_end)")
+            continue
+        d = np.array([np.linalg.norm(s.xyz - p.xyz) for s in detected])
+        order = np.argsort(d)
+        if d[order[0]] > config.gate_m:
+            problems.append(f"{what} point {p.name}: no stand-still within {config.gate_m:g} m (the nearest is "
+                            f"{d[order[0]]:.2f} m away, at {detected[order[0]].t_s:.2f} s)")
+            continue
+        if len(d) > 1 and d[order[1]] <= config.gate_m and d[order[1]] < config.ambiguity_ratio * d[order[0]]:
+            problems.append(f"{what} point {p.name}: ambiguous, stand-stills at {detected[order[0]].t_s:.2f} s and "
+                            f"{detected[order[1]].t_s:.2f} s are both within {config.gate_m:g} m (give t_start,t_end)")
+            continue
+        claims.setdefault(int(order[0]), []).append(n)
+    for s, claimants in claims.items():
+        if len(claimants) > 1:
+            names = ", ".join(points.points[n].name for n in claimants)
+            problems.append(f"{what} points {names}: all nearest to the stand-still at {detected[s].t_s:.2f} s "
+                            "(ambiguous, left out)")
+        else:
+            chosen[claimants[0]] = detected[s]
+    for line in problems:
+        log.warning("%s", line)
+    kept = sorted(chosen)
+    if not kept:
+        raise InputError(f"no {what} point could be tied to the trajectory: " + "; ".join(problems[:3]),
+                         points.source)
+    return Assignment(tuple(points.points[n].name for n in kept), np.array([points.points[n].xyz for n in kept]),
+                      np.array([points.points[n].sigma_m for n in kept]), tuple(chosen[n] for n in kept),
+                      tuple(problems))
+
+
+def _ranges(trajectories: Sequence[Trajectory]) -> str:
+    return " (" + ", ".join(f"{t.t_start_s:.3f}-{t.t_end_s:.3f} s" for t in trajectories) + ")"
+
+
+@dataclass(frozen=True, eq=False)
+class ControlTie:
+    """A control point tied to the station nearest in time to its stand-still: the station's
+    index, the reference point ``q_scan`` (3,) in the station's scan frame, the surveyed
+    coordinates ``xyz`` (3,), their covariance ``cov_m2`` (3, 3) (survey plus scatter), and the
+    stand-still's time and its distance in time to the station [s]."""
+
+    name: str
+    station: int
+    q_scan: FloatArray
+    xyz: FloatArray
+    cov_m2: FloatArray
+    t_s: float
+    dt_s: float
+
+
+def tie_points(assignment: Assignment, stations: Sequence[Station], trajectories: Sequence[Trajectory],
+               config: ControlConfig) -> tuple[ControlTie, ...]:
+    """One :class:`ControlTie` per assigned point: the quasi-static station of its run nearest in
+    time to the stand-still's mean time."""
+    reference = np.asarray(config.reference_point_m)
+    ties = []
+    for name, xyz, sigma, still in zip(assignment.names, assignment.xyz, assignment.sigma_m,
+                                       assignment.stand_stills, strict=True):
+        own = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC and s.run == still.run]
+        k = min(own, key=lambda k: abs(stations[k].t_s - still.t_s))
+        traj = trajectories[still.run]
+        T_station, T_still = traj.pose_at(np.array([stations[k].t_s, still.t_s]))
+        q = T_station.inverse().compose(T_still).apply(reference[None, :])[0]
+        ties.append(ControlTie(name, k, q, np.asarray(xyz, dtype=np.float64),
+                               sigma**2 * np.eye(3) + still.scatter_m2, still.t_s, still.t_s - stations[k].t_s))
+    return tuple(ties)
+
+
+def control_observations(ties: Sequence[ControlTie], stations: Sequence[Station], rates: DriftRates,
+                         previous: BlockResult | None = None) -> list[RelativeObservation]:
+    """The block's observations of the control points (see the module's docstring), linearised at
+    the ``previous`` adjustment's station rotations where given (else the initial ones)."""
+    observations = []
+    for tie in ties:
+        k = tie.station
+        T = previous.poses[k] if previous is not None else stations[k].T_obj_scan
+        R = T.rotation_matrix
+        J = R @ np.hstack([np.eye(3), -skew(tie.q_scan)])
+        trajectory = rates.covariance(abs(tie.dt_s), T) + window_bias_covariance(stations[k], T, rates)
+        C = tie.cov_m2 + J @ trajectory @ J.T
+        info = J.T @ np.linalg.inv(C) @ J
+        Z = Pose(T.quat_wxyz, tie.xyz - R @ tie.q_scan)
+        observations.append(RelativeObservation(ObservationKind.STATION, k, -1, Z, 0.5 * (info + info.T), 3))
+    return observations
+
+
+def free_rotations(ties: Sequence[ControlTie]) -> tuple[FloatArray, str]:
+    """The rotation axes (m, 3) (object frame, orthonormal) that the control points leave free:
+    all three for one point, the line through them for two (or for points within 0.1 m of one
+    line), none from three points on; and what the points fix, in words."""
+    xyz = np.array([t.xyz for t in ties])
+    if len(xyz) == 1:
+        return np.eye(3), "translations"
+    centred = xyz - xyz.mean(axis=0)
+    _, sing, Vt = np.linalg.svd(centred)
+    if len(xyz) >= 3 and sing[1] / math.sqrt(len(xyz)) > 0.1:
+        return np.zeros((0, 3)), "translations and rotations"
+    axis = Vt[0]
+    k = int(np.argmax(np.abs(axis)))
+    name = "xyz"[k] if abs(axis[k]) > 0.99 else "(" + ", ".join(f"{c:.2f}" for c in axis) + ")"
+    return axis[None, :], f"translations and rotations except about the line through them ({name})"
+
+
+def first_station_rotation(axes: FloatArray, station: int, T: Pose, sigma_rad: float) -> RelativeObservation:
+    """A datum observation of station ``station``'s rotation about the object-frame ``axes``
+    (m, 3) only, held at ``T`` with ``sigma_rad`` (the directions the control points leave free)."""
+    A = axes @ T.rotation_matrix  # rows: the axes in the station frame (phi is a right perturbation)
+    info = np.zeros((6, 6))
+    info[3:, 3:] = A.T @ A / sigma_rad**2
+    return RelativeObservation(ObservationKind.STATION, station, -1, T, info, len(axes))
+
+
+def control_residuals(ties: Sequence[ControlTie], adjusted: Pose) -> FloatArray:
+    """Per tie: the adjusted station's reference point minus the surveyed coordinates (n, 3) [m]."""
+    return np.array([adjusted[t.station].apply(t.q_scan[None, :])[0] - t.xyz for t in ties]).reshape(-1, 3)

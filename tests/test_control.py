@@ -1,0 +1,215 @@
+"""Control and check points (issue 15): the CSV reader, stand-still detection and assignment, the
+control observation in the block, bad files through the command line, and one simulated run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from clirunner import run_cli
+from conftest import write_synthetic_run
+
+from kinreg.config import BlockConfig, ControlConfig, KinregConfig
+from kinreg.errors import InputError
+from kinreg.estimate.block import adjust_block
+from kinreg.estimate.control import (
+    ControlTie,
+    assign_points,
+    control_observations,
+    control_residuals,
+    find_stand_stills,
+    first_station_rotation,
+    free_rotations,
+)
+from kinreg.estimate.drift import DriftRates
+from kinreg.geometry import Pose, rotvec_to_quat
+from kinreg.io.control import parse_control_points, read_control_points
+from kinreg.report.control import loa_class
+from kinreg.types import ScanKind, Station, Trajectory
+
+GOOD = "name,x,y,z,sigma_mm\nA,1.0,2.0,3.0,3\nB,4.0,5.0,6.0,2.5\n"
+
+
+def test_reader_reads_points_in_any_column_order(tmp_path):
+    path = tmp_path / "cp.csv"
+    path.write_text("# surveyed 2026\nsigma_mm,z,y,x,name,t_start,t_end\n3,3.0,2.0,1.0,A,10,12\n")
+    points = read_control_points(path)
+    assert points.names == ("A",)
+    p = points.points[0]
+    assert np.allclose(p.xyz, [1, 2, 3]) and p.sigma_m == pytest.approx(0.003)
+    assert p.has_times and (p.t_start_s, p.t_end_s) == (10.0, 12.0)
+    assert not parse_control_points(GOOD, "x.csv").points[1].has_times
+
+
+@pytest.mark.parametrize(("text", "reason"), [
+    ("name,x,y,sigma_mm\nA,1,2,3\n", "missing column(s) z"),
+    ("name,x,y,z,sigma_mm\nA,1,nan,3,3\n", "y is not a finite number"),
+    ("name,x,y,z,sigma_mm\nA,1,b,3,3\n", "y is not a number"),
+    ("name,x,y,z,sigma_mm\nA,1,2,3,3\nA,1,2,3,3\n", "point A is given twice"),
+    ("name,x,y,z,sigma_mm\nA,1,2,3,0\n", "sigma_mm must be positive"),
+    ("name,x,y,z,sigma_mm,t_start\nA,1,2,3,3,5\n", "t_start without t_end"),
+    ("name,x,y,z,sigma_mm,t_start,t_end\nA,1,2,3,3,5,4\n", "is not after t_start"),
+    ("name,x,y,z,sigma_mm\nA,1,2,3\n", "4 values for 5 columns"),
+    ("name,x,y,z,sigma_mm\n", "no points"),
+    ("", "empty"),
+])
+def test_reader_names_the_file_and_the_problem(tmp_path, text, reason):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(InputError) as info:
+        read_control_points(path)
+    assert reason in str(info.value) and str(path) in str(info.value)
+
+
+def _still_trajectory(t0: float = 100.0) -> tuple[Trajectory, list[tuple[float, float]]]:
+    """A walk at 1 m/s along x with two 4 s stand-stills (at x = 5 and x = 15), 100 Hz."""
+    t = t0 + np.arange(0, 40.0, 0.01)
+    rate = np.ones_like(t)
+    stills = [(t0 + 8.0, t0 + 12.0), (t0 + 24.0, t0 + 28.0)]
+    for a, b in stills:
+        rate[(t >= a) & (t <= b)] = 0.0
+    x = np.concatenate([[0.0], np.cumsum(rate[1:] * 0.01)])
+    xyz = np.column_stack([x, 0.1 * np.sin(0.3 * x), np.full_like(x, 1.3)])
+    yaw = 0.02 * x
+    q = rotvec_to_quat(np.column_stack([np.zeros_like(x), np.zeros_like(x), yaw]))
+    return Trajectory(t, Pose(q, xyz)), stills
+
+
+def test_stand_stills_are_found_and_points_assigned_one_to_one():
+    traj, stills = _still_trajectory()
+    found = find_stand_stills(traj, ControlConfig())
+    assert len(found) == 2
+    for s, (a, b) in zip(found, stills, strict=True):
+        assert a - 0.2 <= s.t_start_s and s.t_end_s <= b + 0.2 and abs(s.t_s - 0.5 * (a + b)) < 0.05
+    x1, x2 = (traj.pose_at(np.array([s.t_s])).t_xyz[0] for s in found)
+    text = ("name,x,y,z,sigma_mm\n"
+            f"P1,{x1[0] + 0.05},{x1[1]},{x1[2]},3\nP2,{x2[0]},{x2[1] - 0.1},{x2[2]},3\nFAR,50,0,1.3,3\n")
+    points = parse_control_points(text, "cp.csv")
+    assignment = assign_points(points, [traj], ControlConfig())
+    assert assignment.names == ("P1", "P2")
+    assert [s.t_s for s in assignment.stand_stills] == [found[0].t_s, found[1].t_s]
+    assert len(assignment.problems) == 1
+    assert "FAR" in assignment.problems[0] and "within 0.5 m" in assignment.problems[0]
+
+
+def test_ambiguous_points_are_left_out_and_nothing_left_is_an_error():
+    traj, _ = _still_trajectory()
+    found = find_stand_stills(traj, ControlConfig())
+    x1 = traj.pose_at(np.array([found[0].t_s])).t_xyz[0]
+    text = f"name,x,y,z,sigma_mm\nP1,{x1[0]},{x1[1]},{x1[2]},3\nP1b,{x1[0] + 0.01},{x1[1]},{x1[2]},3\n"
+    with pytest.raises(InputError) as info:
+        assign_points(parse_control_points(text, "cp.csv"), [traj], ControlConfig())
+    assert "cp.csv" in str(info.value) and "P1, P1b" in str(info.value)
+
+
+def test_times_outside_the_trajectory_are_an_error():
+    traj, _ = _still_trajectory()
+    text = "name,x,y,z,sigma_mm,t_start,t_end\nP1,0,0,0,3,10,12\n"
+    with pytest.raises(InputError, match="outside the trajectory's time range"):
+        assign_points(parse_control_points(text, "cp.csv"), [traj], ControlConfig())
+
+
+def _station(k: int, T: Pose, t_s: float) -> Station:
+    return Station(k, f"qs_{k:05d}", ScanKind.QUASI_STATIC, t_s, t_s - 3.0, t_s + 3.0, T, 1000, 0.0)
+
+
+def test_control_observations_pull_the_station_onto_the_control_coordinates():
+    """One free station, three control points on levers q: the adjusted station maps each q onto
+    its surveyed point (the rank-3 information J^T C^-1 J with J = R [I, -[q]x])."""
+    T_true = Pose(rotvec_to_quat(np.array([0.02, -0.01, 0.6])), np.array([10.0, 20.0, 1.5]))
+    T_start = T_true.compose(Pose.exp(np.array([0.05, -0.03, 0.02, 0.01, 0.02, -0.03])))
+    levers = np.array([[1.0, 0.0, -1.2], [0.0, 2.0, -1.3], [-1.5, -0.5, -1.1]])
+    ties = [ControlTie(f"P{k}", 0, q, T_true.apply(q[None, :])[0], 1e-6 * np.eye(3), 0.0, 0.0)
+            for k, q in enumerate(levers)]
+    station = _station(0, T_start, 0.0)
+    rates = DriftRates(np.zeros(3), np.zeros(3), 1e-4, 1e-5)
+    observations = control_observations(ties, [station], rates)
+    assert all(o.rank == 3 and np.linalg.matrix_rank(o.info, tol=1e-6 * np.abs(o.info).max()) == 3
+               for o in observations)
+    result = adjust_block(Pose.stack([T_start]), observations, np.zeros(1, dtype=bool), BlockConfig())
+    assert np.abs(control_residuals(ties, result.poses)).max() < 1e-6
+    assert np.allclose(result.poses.t_xyz[0], T_true.t_xyz, atol=1e-6)
+    # Linearised at the adjusted pose, the observations hold it there.
+    again = control_observations(ties, [station], rates, previous=result)
+    assert np.allclose(adjust_block(result.poses, again, np.zeros(1, dtype=bool), BlockConfig()).poses.t_xyz,
+                       T_true.t_xyz, atol=1e-7)
+
+
+def test_one_or_two_points_leave_rotations_free_and_the_first_station_holds_them():
+    def tie(x: float, y: float) -> ControlTie:
+        return ControlTie("P", 0, np.zeros(3), np.array([x, y, 0.0]), np.eye(3), 0.0, 0.0)
+
+    axes, words = free_rotations([tie(0, 0)])
+    assert len(axes) == 3 and words == "translations"
+    axes, words = free_rotations([tie(0, 0), tie(5, 0)])
+    assert np.allclose(np.abs(axes), [[1, 0, 0]]) and "line through them (x)" in words
+    assert len(free_rotations([tie(0, 0), tie(5, 0), tie(0, 4)])[0]) == 0
+    T = Pose(rotvec_to_quat(np.array([0.0, 0.0, 0.5])), np.zeros(3))
+    o = first_station_rotation(axes, 0, T, 1e-6)
+    assert o.rank == 1 and np.allclose(o.info[:3], 0.0)
+    # the information is on the rotation about object x, expressed in the station frame
+    direction = T.rotation_matrix @ np.linalg.eigh(o.info[3:, 3:])[1][:, -1]
+    assert np.allclose(np.abs(direction), [1, 0, 0], atol=1e-9)
+
+
+def test_loa_bands():
+    assert [loa_class(v) for v in (0.5, 1.0, 1.01, 5.0, 14.9, 15.0, 49.0, 50.0, 50.1)] == [
+        "LOA50", "LOA50", "LOA40", "LOA40", "LOA30", "LOA30", "LOA20", "LOA20", "LOA10"]
+
+
+@pytest.mark.parametrize(("text", "reason"), [
+    ("name,x,y,sigma_mm\nA,1,2,3\n", "missing column(s) z"),
+    ("name,x,y,z,sigma_mm\nA,1,2,nan,3\n", "z is not a finite number"),
+    ("name,x,y,z,sigma_mm\nA,1,2,3,3\nA,1,2,3,3\n", "point A is given twice"),
+    ("name,x,y,z,sigma_mm\nA,500,500,3,3\n", "no control point could be tied to the trajectory"),
+    ("name,x,y,z,sigma_mm,t_start,t_end\nA,1,2,3,3,1,2\n", "outside the trajectory's time range"),
+])
+def test_bad_control_files_stop_with_one_line(tmp_path, capsys, text, reason):
+    run = write_synthetic_run(tmp_path / "run", n_points=5000, duration_s=10.0)
+    bad = tmp_path / "bad.csv"
+    bad.write_text(text)
+    out = tmp_path / "out"
+    for option in ("--control", "--check"):
+        code, _, err = run_cli(["process", "-t", run.trajectory_path, "-c", run.cloud_path, "-o", out, option, bad,
+                                "--workers", "1"], capsys)
+        lines = [line for line in err.splitlines() if line.startswith("kinreg: error")]
+        assert code == 1 and len(lines) == 1 and str(bad) in lines[0], err
+        assert (reason if option == "--control" else reason.replace("control point", "check point")) in lines[0]
+        assert "Traceback" not in err
+        assert not (out / "report.json").exists() and not (out / "stations.csv").exists()
+
+
+@pytest.mark.slow
+def test_simulated_run_with_four_control_points_and_a_wrong_one(tmp_path):
+    """Four control points at the stand-stills of a simulated walk, the first moved by 5 cm; the
+    others' check points: the wrong point is rejected and named, the stations land within a few mm."""
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.run.pipeline import ProcessInputs, process
+    from kinreg.simulation.files import control_csv, write_run
+    from kinreg.simulation.run import config_from_dict, simulate_run
+
+    sample = Path(__file__).resolve().parents[1] / "sample_data"
+    base = config_from_dict(json.loads((sample / "run_meta.json").read_text())["config"])
+    cfg = dataclasses.replace(base, seed=3, walk=dataclasses.replace(base.walk, stand_stills=6))
+    run = simulate_run(cfg)
+    data = tmp_path / "data"
+    write_run(run, data)
+    control, check = tmp_path / "control.csv", tmp_path / "check.csv"
+    control.write_text(control_csv(run, names=["CP01", "CP02", "CP04", "CP05", "CP06"],
+                                   moved={"CP04": (0.05, 0.0, 0.0)}))
+    check.write_text(control_csv(run, noise=False, names=["CP03"]))
+    out = tmp_path / "out"
+    process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz", control=control, check=check), out,
+            KinregConfig())
+    report = json.loads((out / "report.json").read_text())
+    assert report["control"]["rejected"] == ["CP04"]
+    assert "5 control point(s)" in report["adjustment"]["datum"]
+    assert report["check"]["summary"]["d3d_mm"]["rms"] < 10.0
+    assert (out / "control_points.csv").read_text().count("\n") == 1 + 5 + 1
+    rows = np.genfromtxt(out / "stations.csv", delimiter=",", names=True, dtype=None, encoding="utf-8")
+    truth = read_trajectory(data / "truth_trajectory.txt").pose_at(rows["t"].astype(float)).t_xyz
+    err = np.column_stack([rows["x"], rows["y"], rows["z"]]) - truth
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.01
