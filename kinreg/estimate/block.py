@@ -2,11 +2,13 @@
 
 Unknowns: the poses ``T_obj_k`` of all stations, each as a right perturbation
 ``T_k = T_k^0 . exp(x_k)`` of its current value (``x_k = (rho, phi)``, rho in the station
-frame). Observations: relative poses between stations with 6x6 (possibly rank-deficient)
-information matrices (:class:`~kinreg.types.RelativeObservation`): the plane-only information
-of every pairwise link, the trajectory's own relative pose between consecutive stations (once),
-and direct observations of station poses. Gauss-Newton on SE(3) with a sparse normal matrix
-(CHOLMOD where available). Fixed stations define the datum.
+frame), and, where the trajectory's drift is modelled as a process, the drift velocity of each
+trajectory link (6 values, object axes). Observations (:class:`~kinreg.types.RelativeObservation`,
+each on up to three of these nodes, with 6x6 possibly rank-deficient information matrices): the
+plane-only information of every pairwise link, the trajectory's own relative pose between
+consecutive stations (once; less its drift velocity times its duration), the drift velocity's
+change from one link to the next, and direct observations of station poses. Damped Gauss-Newton
+on SE(3) with a sparse normal matrix (CHOLMOD where available). Fixed stations define the datum.
 
 After convergence: the a-posteriori standard deviation of unit weight and the global test,
 per-observation test statistics and redundancy numbers from the 6x6 blocks of the inverse
