@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import json
 import sys
 import tempfile
@@ -73,7 +74,8 @@ def wrong_reference(data: Path, folder: Path) -> Path:
     return path
 
 
-def evaluate(name: str, work: Path) -> dict:
+def evaluate(name: str, work: Path, seed: int | None = None, drift_model: str | None = None,
+             magnitude: str | None = None) -> dict:
     from eval_accuracy import scenario_config
 
     from kinreg.config import KinregConfig
@@ -83,9 +85,10 @@ def evaluate(name: str, work: Path) -> dict:
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import simulate_run
 
-    data = REPO / "sample_data" if name == "sample" else work / "data"
-    if name != "sample":
-        write_run(simulate_run(scenario_config(name)), data)
+    committed = name == "sample" and seed is None and drift_model is None and magnitude is None
+    data = REPO / "sample_data" if committed else work / "data"
+    if not committed:
+        write_run(simulate_run(scenario_config(name, seed, drift_model, magnitude)), data)
     truth = read_trajectory(data / "truth_trajectory.txt")
     traj, cloud = data / "run_trajectory.txt", data / "run_cloud.laz"
     runs = {
@@ -93,7 +96,7 @@ def evaluate(name: str, work: Path) -> dict:
         "reference": ProcessInputs(traj, cloud, reference=data / "reference.toml"),
         "reference_wrong": ProcessInputs(traj, cloud, reference=wrong_reference(data, work)),
     }
-    result = {"scenario": name}
+    result = {"scenario": name, "seed": seed, "drift_model": drift_model, "magnitude": magnitude}
     for label, inputs in runs.items():
         t0 = time.perf_counter()
         process(inputs, work / label, KinregConfig(), overwrite=True)
@@ -110,13 +113,21 @@ def evaluate(name: str, work: Path) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenario", nargs="+", default=["sample", "heldout"])
+    parser.add_argument("--seeds", nargs="*", type=int, default=[None], help="run seeds (default: the scenario's)")
+    parser.add_argument("--drift-models", nargs="*", default=[None], help="world, slam, gnss-ins")
+    parser.add_argument("--magnitudes", nargs="*", default=[None], help="drift classes of eval_accuracy.py")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "datum.json")
     args = parser.parse_args()
     results = []
-    for name in args.scenario:
+    for name, model, magnitude, seed in itertools.product(args.scenario, args.drift_models, args.magnitudes,
+                                                          args.seeds):
         with tempfile.TemporaryDirectory(prefix=f"kinreg-datum-{name}-") as tmp:
-            res = evaluate(name, Path(tmp))
-        print(json.dumps(res, indent=1), flush=True)
+            try:
+                res = evaluate(name, Path(tmp), seed, model, magnitude)
+            except Exception as error:  # a failed run is a row of the table, not the end of the matrix
+                res = {"scenario": name, "seed": seed, "drift_model": model, "magnitude": magnitude,
+                       "error": f"{type(error).__name__}: {error}"}
+        print(json.dumps(res), flush=True)
         results.append(res)
     args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
                                     "results": results}, indent=1) + "\n")
