@@ -97,7 +97,7 @@ def drift_observation(rates: DriftRates, link: int, dt_s: float,
 
 
 def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], result: BlockResult,
-                    rates: DriftRates) -> list[tuple[Plane, ...]]:
+                    rates: DriftRates) -> tuple[list[tuple[Plane, ...]], float]:
     """The planes of every quasi-static scan with the shear that the trajectory's attitude error
     puts into a window where it is coupled (``rates.coupling``, GNSS/INS-like) taken out.
 
@@ -109,14 +109,15 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
     neighbouring stations): its offset, centroid and hull are moved back by ``kappa`` times it.
     On simulated GNSS/INS runs (0.4 deg attitude error, 0.4 m/s) that is 2-5 mm per plane, more
     than the drift inside the window. Static scans and runs without coupling are returned as they are.
+    Returns the planes and the largest shift [m].
     """
     kappa = rates.coupling
     if kappa <= 0.0:
-        return list(planes)
+        return list(planes), 0.0
     phi = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz)
     R = result.poses.rotation_matrix
     velocity = _platform_velocities(stations, result.poses_initial)
-    out = []
+    out, largest = [], 0.0
     for k, scan_planes in enumerate(planes):
         if stations[k].kind is not ScanKind.QUASI_STATIC or not np.all(np.isfinite(velocity[k])):
             out.append(scan_planes)
@@ -125,10 +126,11 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
         for p in scan_planes:
             tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
             shift = kappa * R[k].T @ np.cross(phi[k], velocity[k] * tau)
+            largest = max(largest, float(np.linalg.norm(shift)))
             moved.append(replace(p, d_m=float(p.d_m - p.normal @ shift), centroid_xyz=p.centroid_xyz - shift,
                                  hull_xyz=p.hull_xyz - shift))
         out.append(tuple(moved))
-    return out
+    return out, largest
 
 
 def _platform_velocities(stations: Sequence[Station], poses: Pose) -> FloatArray:

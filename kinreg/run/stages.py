@@ -219,10 +219,12 @@ def adjust_with_measured_drift(
                       or np.any(rates.rot_rad_per_s > 1.2 * linked_with.rot_rad_per_s))
         # Where the attitude error is coupled (GNSS/INS-like) it shears every window: its planes are
         # moved back with the adjusted attitudes, and every pair is linked again with them.
-        sheared = rates.coupling > 0.0
-        links = link_stations(network.stations, deskewed_planes(network.stations, planes, result, rates),
-                              config.matching, config.drift, config.pairwise, progress, static, executor, rates,
-                              adjusted=result, previous=() if faster or sheared else network.links)
+        # (Where no plane moves by more than its offset's floor sigma, nothing is gained.)
+        deskewed, shift = deskewed_planes(network.stations, planes, result, rates)
+        sheared = shift > config.planes.min_sigma_d_m
+        links = link_stations(network.stations, deskewed if sheared else planes, config.matching, config.drift,
+                              config.pairwise, progress, static, executor, rates, adjusted=result,
+                              previous=() if faster or sheared else network.links)
         linked_with = rates if faster else linked_with
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
