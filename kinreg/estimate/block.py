@@ -485,10 +485,12 @@ def _test_observations(state, observations, active, fixed, vnode, free_index, we
     # An uncontrolled observation (redundancy ~ 0) cannot be tested.
     statistic = np.where(r_k > 1e-6, statistic, np.nan)
     keep = dof > 0
+    # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
+    normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
     tests = [
         ObservationTest(int(a.idx[k]), ObservationKind(a.kinds[k]), int(observations[a.idx[k]].i),
                         int(observations[a.idx[k]].j), float(statistic[k]), int(dof[k]), float(r_k[k]),
-                        float(np.sqrt(statistic[k] / dof[k])), False, float(vtpv[k]),
+                        float(normalised[k]), False, float(vtpv[k]),
                         min_redundancy=float(r_dir[k, 0]), cov_adjusted=cov_adjusted[k])
         for k in np.flatnonzero(keep)
     ]
