@@ -163,3 +163,32 @@ def test_a_trajectory_link_far_off_its_model_is_named(caplog):
     with caplog.at_level(logging.WARNING):
         _warn_trajectory_misfits(loud, 0.001)
     assert "17-18 (9 sigma)" in caplog.text
+
+
+def test_a_coupled_attitude_error_is_taken_out_of_the_planes():
+    """GNSS/INS-like: a plane seen 2 s after the centre of a window walked at 0.5 m/s along x,
+    with an attitude correction of 5 mrad about z, is off by R^T (phi x v tau) = 5 mm along y;
+    deskewed with kappa = 1 it moves back by that, with kappa = 0 not at all."""
+    from dataclasses import replace as replaced
+
+    from planefixtures import plane_in_scan
+
+    from kinreg.estimate.drift import deskewed_planes
+
+    n = 3
+    initial = Pose(np.tile([1.0, 0, 0, 0], (n, 1)), np.column_stack([0.5 * DT * np.arange(n), 4 + 0 * np.arange(n),
+                                                                      1.5 + 0 * np.arange(n)]))
+    stations = [Station(k, f"s{k}", ScanKind.QUASI_STATIC, DT * k, DT * k - 3, DT * k + 3, initial[k], 1000)
+                for k in range(n)]
+    adjusted = Pose.exp(np.array([0, 0, 0, 0, 0, 0.005])).compose(initial)
+    adjusted = Pose(adjusted.quat_wxyz, initial.t_xyz)  # turned in place: the attitude corrected
+    wall = plane_in_scan((0, 1, 0), 0.0, (6, 0, 1.5), (6, 1.5), initial[1], 1, 0, 1e-4, 1e-4, None)
+    wall = replaced(wall, t_offset_s=2.0)
+    planes = [(), (wall,), ()]
+    result = SimpleNamespace(poses=adjusted, poses_initial=initial, cov_xi=np.zeros((n, 6, 6)))
+    rates = DriftRates(SIGMA_V[:3], SIGMA_V[3:], FLOOR_M, FLOOR_RAD, coupling=1.0)
+    out, largest = deskewed_planes(stations, planes, result, rates)
+    assert largest == pytest.approx(0.005, rel=1e-3)
+    assert out[1][0].d_m - wall.d_m == pytest.approx(-wall.normal @ np.array([0, 0.005, 0]), abs=1e-6)
+    out, largest = deskewed_planes(stations, planes, result, replace(rates, coupling=0.0))
+    assert largest == 0.0 and out[1][0] is wall
