@@ -205,3 +205,13 @@ def test_supernodal_recursion_matches_column_recursion(backend, n_blocks, closur
     assert len(sizes) > 3
     ref = _takahashi_by_columns(L, d, 6)
     assert _rel(Z, ref) < 1e-11
+
+
+def test_block_pattern_leaves_N_alone(network):
+    N, links, _ = network
+    before = (N.indptr.copy(), N.indices.copy(), N.data.copy())
+    B = ks._block_pattern(N, 6)
+    assert all(np.array_equal(a, b) for a, b in zip(before, (N.indptr, N.indices, N.data), strict=True))
+    expected = np.zeros((300, 300), dtype=bool)
+    expected[links[:, 0], links[:, 1]] = expected[links[:, 1], links[:, 0]] = True
+    np.testing.assert_array_equal(B.toarray() > 0, expected)

@@ -179,12 +179,15 @@ def _check_pivots(pivots: np.ndarray, diag: np.ndarray) -> None:
 
 def _block_pattern(N: sp.csc_matrix, bs: int) -> sp.csc_matrix:
     """The graph of nonzero blocks, (n/bs x n/bs), symmetric, unit entries (no diagonal)."""
-    coo = N.tocoo()
     nb = N.shape[0] // bs
-    r, c = coo.row // bs, coo.col // bs
-    off = r != c
-    B = sp.coo_matrix((np.ones(np.count_nonzero(off)), (r[off], c[off])), shape=(nb, nb)).tocsc()
-    B.data[:] = 1.0
+    # Block column J is scalar columns bs J .. bs J + bs - 1: their row blocks, duplicates summed
+    # away in C (no coordinate arrays of nnz(N) length beyond the row blocks themselves).
+    B = sp.csc_matrix((np.ones(N.nnz, dtype=np.int32), N.indices // bs, N.indptr[::bs].copy()),
+                     shape=(nb, nb))  # own indptr: summing duplicates rewrites it
+    B.sum_duplicates()
+    coo = B.tocoo()
+    off = coo.row != coo.col
+    B = sp.coo_matrix((np.ones(np.count_nonzero(off)), (coo.row[off], coo.col[off])), shape=(nb, nb)).tocsc()
     return ((B + B.T) > 0).astype(float).tocsc()
 
 
