@@ -23,7 +23,14 @@ first, with ``S`` the row blocks of column ``J`` below the diagonal::
 
 and every ``Z[S, S]`` block lies inside the pattern again (the pattern of a Cholesky factor is
 chordal). The fill-reducing ordering is computed on the block graph, so each station's 6 unknowns
-stay together and the recursion runs over ``6 x 6`` blocks with one numpy step per block column.
+stay together and the recursion runs over ``6 x 6`` blocks. It takes a supernode at a time (a run
+of block columns ``C`` sharing the rows ``R`` below them), with ``W = L[R, C] L[C, C]^-1``::
+
+    Z[R, C] = -Z[R, R] W
+    Z[C, C] = L[C, C]^-T D_C^-1 L[C, C]^-1 - W^T Z[R, C]
+
+and, since ``R`` are ancestors in the elimination tree, all supernodes of one tree depth in one
+batched numpy step (100,000 stations: 41,605 supernodes, 205 depths).
 """
 
 from __future__ import annotations
