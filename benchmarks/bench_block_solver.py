@@ -1,7 +1,7 @@
 """Sparse block solver benchmark: assembly, factorisation, solve and selected inverse.
 
-Run: ``.venv/bin/python benchmarks/bench_block_solver.py [--stations 231 2000 20000]
-[--scipy-max 2000] [--out benchmarks/block_solver.json]``
+Run: ``.venv/bin/python benchmarks/bench_block_solver.py [--stations 231 2000 20000 100000]
+[--scipy-max 20000] [--out benchmarks/block_solver.json]``
 
 Synthetic survey networks: stations 10 m apart along a serpentine path (square-ish: lanes of
 about sqrt(n) stations, at least 50, 15 m apart), each station linked to its 4 successors, plus
@@ -14,7 +14,8 @@ relative-pose link does.
 Per network and backend: the time to assemble ``N`` and ``b`` from the per-link 12 x 12
 contributions (vectorised COO), to factorise, to solve, and to compute the selected inverse
 (diagonal blocks + all link pairs). With ``--check`` (up to 2,000 stations) the covariances are
-compared with the dense inverse.
+compared with the dense inverse. Each network runs in a child process of its own, so that its
+peak resident memory (``peak_rss_gb``, from ``getrusage``) is its own.
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ import argparse
 import json
 import os
 import platform
+import resource
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -105,6 +109,7 @@ def run(n_stations: int, backend: str, check: bool) -> dict:
         "total_s": t4 - t0,
         "residual_rel": float(np.linalg.norm(N @ x - b) / np.linalg.norm(b)),
         "sigma_last_station_mm": float(1e3 * np.sqrt(np.trace(diag[-1, :3, :3]) / 3)),
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
     }
     if check:
         # Jacobi scaling first: mm and 0.1 mrad unknowns differ by 1e2 in scale, the plain inverse
@@ -121,22 +126,28 @@ def run(n_stations: int, backend: str, check: bool) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--stations", type=int, nargs="+", default=[231, 2000, 20000])
+    parser.add_argument("--stations", type=int, nargs="+", default=[231, 2000, 20000, 100000])
     parser.add_argument("--scipy-max", type=int, default=20000, help="largest network for the scipy backend")
     parser.add_argument("--check", action="store_true", help="compare with the dense inverse (<= 2,000)")
     parser.add_argument("--out", type=Path, default=Path(__file__).with_name("block_solver.json"))
+    parser.add_argument("--one", nargs=3, metavar=("STATIONS", "BACKEND", "CHECK"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run(int(args.one[0]), args.one[1], args.one[2] == "1")))
+        return
     results = []
     for n in args.stations:
         for backend in ("cholmod", "scipy"):
             if backend == "scipy" and n > args.scipy_max:
                 continue
-            res = run(n, backend, args.check and n <= 2000)
+            child = [sys.executable, __file__, "--one", str(n), backend, str(int(args.check and n <= 2000))]
+            res = json.loads(subprocess.run(child, check=True, capture_output=True, text=True).stdout)
             results.append(res)
             print(json.dumps(res))
     meta = {"date": time.strftime("%Y-%m-%d"), "python": platform.python_version(),
             "machine": platform.machine(), "cpus": os.cpu_count(),
-            "OMP/OPENBLAS threads": os.environ.get("OPENBLAS_NUM_THREADS", "default")}
+            "OMP/OPENBLAS threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"),
+            "command": " ".join(sys.argv)}
     args.out.write_text(json.dumps({"meta": meta, "results": results}, indent=1) + "\n")
 
 

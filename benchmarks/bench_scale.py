@@ -12,11 +12,15 @@ script
    per core, so the seed-scale run takes well under its own 26 minutes to generate;
 2. measures, each in a fresh child process run alone (so its peak memory is its own):
    ``decode``: lazrs (parallel) decode of every chunk, all fields: the floor for ingest;
-   ``decode-selected``: the same, only the fields kinreg reads; ``process``: ``kinreg process``
+   ``decode-selected``: the same, only the fields kinreg reads; ``roundtrip``: decode, shift X by
+   one unit, encode again (parallel lazrs both ways, to a scratch file): the floor for writing
+   ``corrected.laz``; decode and round trip run before and again after ``kinreg process``, so the
+   floor is measured under the same load as the run; ``process``: ``kinreg process``
    (the console script), with wall time per stage from ``report.json`` (``timings_s``), the peak
    resident memory of the largest process (its ``VmHWM``) and the largest sum of resident memory
    over the process tree (``VmRSS``), both from ``/proc`` sampled every 0.2 s (worker processes
-   count);
+   count); the floor is the mean decode plus the mean round trip, and every stage is given as a
+   multiple of it (``x_floor``) besides the whole run;
 3. deletes the generated data (``--keep`` keeps it).
 
 Usage::
@@ -48,7 +52,9 @@ from typing import Any
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-KINREG = REPO / ".venv" / "bin" / "kinreg"
+# The repository's own venv when there is one (a worktree may have none: the running interpreter's).
+KINREG = next((p for p in (REPO / ".venv" / "bin" / "kinreg", Path(sys.executable).with_name("kinreg"))
+               if p.exists()), REPO / ".venv" / "bin" / "kinreg")
 
 SEED_POINTS_PER_S = 234.7e6 / (26 * 60 + 33)  # the seed's project: 147,300 points/s
 SEED_SPEED_MPS = 655.0 / (26 * 60 + 33)  # 655 m in 26:33 min
@@ -204,8 +210,30 @@ def decode_child(mode: str, cloud_path: str) -> None:
     print(json.dumps({"points": n, "seconds": time.perf_counter() - t0}))
 
 
+def roundtrip_child(cloud_path: str) -> None:
+    """In a fresh process: decode, shift, encode every chunk to a scratch LAZ; print JSON."""
+    import laspy
+
+    from kinreg.io.las import _laz_backend
+
+    scratch = Path(cloud_path).with_name("roundtrip-scratch.laz")
+    t0 = time.perf_counter()
+    n = 0
+    try:
+        with laspy.open(cloud_path, laz_backend=_laz_backend()) as r, \
+                laspy.open(scratch, mode="w", header=r.header, do_compress=True, laz_backend=_laz_backend()) as w:
+            for pts in r.chunk_iterator(2_000_000):
+                pts.X = pts.X + 1
+                w.write_points(pts)
+                n += len(pts)
+    finally:
+        scratch.unlink(missing_ok=True)
+    print(json.dumps({"points": n, "seconds": time.perf_counter() - t0}))
+
+
 def measure_decode(mode: str, cloud: Path) -> dict[str, Any]:
-    res = run_measured([sys.executable, __file__, "--decode-child", mode, str(cloud)])
+    flag = "--roundtrip-child" if mode == "roundtrip" else "--decode-child"
+    res = run_measured([sys.executable, __file__, flag, *([] if mode == "roundtrip" else [mode]), str(cloud)])
     inner = json.loads(res.pop("stdout").strip().splitlines()[-1])
     return {**res, **inner, "points_per_s": inner["points"] / inner["seconds"]}
 
@@ -238,6 +266,18 @@ def _duration(traj: Path) -> float:
     return read_trajectory(traj).duration_s
 
 
+def _floor(row: dict[str, Any]) -> dict[str, Any]:
+    """The I/O floor (mean decode + mean round trip, before and after the run) and the run and
+    each stage as multiples of it."""
+    decode = (row["decode"]["seconds"] + row["decode_after"]["seconds"]) / 2
+    roundtrip = (row["roundtrip"]["seconds"] + row["roundtrip_after"]["seconds"]) / 2
+    floor = decode + roundtrip
+    p = row["process"]
+    return {"floor_s": floor, "floor_decode_s": decode, "floor_roundtrip_s": roundtrip,
+            "process_x_floor": p["wall_s"] / floor,
+            "stage_x_floor": {s: t / floor for s, t in p["timings_s"].items()}}
+
+
 def markdown(report: dict[str, Any]) -> str:
     rows = report["results"]
     stages = sorted({s for r in rows for s in r["process"]["timings_s"]},
@@ -246,8 +286,9 @@ def markdown(report: dict[str, Any]) -> str:
     lines = [f"## Seed-scale end-to-end (`benchmarks/bench_scale.py`), {report['date']}", "",
              f"Command: `{report['command']}` on {report['cpus']} shared cores ({report['note']}).", "",
              "| points | run | scans | links | " + " | ".join(stages) + " | total process | peak RSS (largest process) "
-             "| peak RSS (process tree) | decode all fields | slice vs decode |",
-             "|---" * (len(stages) + 9) + "|"]
+             "| peak RSS (process tree) | decode all fields | slice vs decode | floor (decode + round trip) "
+             "| process / floor |",
+             "|---" * (len(stages) + 11) + "|"]
     for r in rows:
         p = r["process"]
         lines.append(
@@ -256,7 +297,13 @@ def markdown(report: dict[str, Any]) -> str:
             + " | ".join(f"{p['timings_s'].get(s, float('nan')):.1f} s" for s in stages)
             + f" | {p['wall_s']:.0f} s | {p['peak_rss_mb']:.0f} MB | {p['peak_tree_rss_mb']:.0f} MB "
             f"| {r['decode']['seconds']:.1f} s ({r['decode']['points_per_s'] / 1e6:.2f} M/s) "
-            f"| {r['slice_vs_decode']:.0%} |")
+            f"| {r['slice_vs_decode']:.0%} "
+            + (f"| {r['floor_decode_s']:.1f} + {r['floor_roundtrip_s']:.1f} s | {r['process_x_floor']:.2f}x |"
+               if "floor_s" in r else "| - | - |"))
+        if "floor_s" in r:
+            lines.append("| (x floor) | | | | " + " | ".join(f"{r['stage_x_floor'].get(s, float('nan')):.2f}"
+                                                           for s in stages)
+                         + f" | {r['process_x_floor']:.2f} | | | | | | |")
     return "\n".join(lines) + "\n"
 
 
@@ -273,9 +320,13 @@ def main() -> None:
                         help="measure runs generated before (folders with run_trajectory.txt and run_cloud.laz; "
                              "kept) instead of generating")
     parser.add_argument("--decode-child", nargs=2, metavar=("MODE", "CLOUD"), help=argparse.SUPPRESS)
+    parser.add_argument("--roundtrip-child", metavar="CLOUD", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.decode_child:
         decode_child(*args.decode_child)
+        return
+    if args.roundtrip_child:
+        roundtrip_child(args.roundtrip_child)
         return
     base = args.tmp or Path(tempfile.mkdtemp(prefix="kinreg-scale-"))
     base.mkdir(parents=True, exist_ok=True)
@@ -296,11 +347,15 @@ def main() -> None:
                 traj, cloud, info = generate(folder, n, args.gen_workers)
             print(f"  {json.dumps(info)}", flush=True)
             row: dict[str, Any] = {"n_points": int(n), "generated": info}
-            for mode in ("decode", "decode-selected"):
+            for mode in ("decode", "decode-selected", "roundtrip"):
                 row[mode] = measure_decode(mode, cloud)
                 print(f"  {mode}: {json.dumps(row[mode])}", flush=True)
             row["process"] = measure_process(traj, cloud, folder / "out", args.process_args.split())
             print(f"  process: {json.dumps(row['process'])}", flush=True)
+            for mode in ("decode", "roundtrip"):
+                row[mode + "_after"] = measure_decode(mode, cloud)
+                print(f"  {mode} after: {json.dumps(row[mode + '_after'])}", flush=True)
+            row.update(_floor(row))
             t_slice = row["process"]["timings_s"].get("slice", math.nan)
             row["slice_vs_decode"] = row["decode"]["seconds"] / t_slice
             row["slice_vs_decode_selected"] = row["decode-selected"]["seconds"] / t_slice

@@ -167,3 +167,51 @@ def test_bad_arguments(network):
         factorize(N[:, :1794])
     with pytest.raises(ValueError, match="out of range"):
         selected_inverse(N, 6, np.array([[0, 300]]))
+
+
+def _takahashi_by_columns(L, d, bs):
+    """The recursion one block column at a time (as before the supernodal batches): the reference."""
+    ptr, rows, blocks_T = ks._block_structure(L, bs)
+    blocks = blocks_T.swapaxes(1, 2)
+    nb = len(ptr) - 1
+    Ljj_inv = np.linalg.inv(blocks[ptr[:-1]])
+    Dinv = Ljj_inv.swapaxes(1, 2) @ (Ljj_inv / d.reshape(nb, bs, 1))
+    col_of = np.repeat(np.arange(nb), np.diff(ptr))
+    U = blocks @ Ljj_inv[col_of]
+    Z = np.empty_like(U)
+    lookup = {(int(c), int(rows[k])): k for c in range(nb) for k in range(ptr[c], ptr[c + 1])}
+    for J in range(nb - 1, -1, -1):
+        S = np.arange(ptr[J] + 1, ptr[J + 1])
+        if not len(S):
+            Z[ptr[J]] = Dinv[J]
+            continue
+        R = rows[S]
+        M = np.block([[Z[lookup[(min(a, b), max(a, b))]] if a >= b else Z[lookup[(a, b)]].T
+                       for b in R] for a in R])
+        Z_SJ = -(M @ U[S].reshape(-1, bs))
+        Z[S] = Z_SJ.reshape(-1, bs, bs)
+        Z[ptr[J]] = Dinv[J] - U[S].reshape(-1, bs).T @ Z_SJ
+    return Z
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize(("n_blocks", "closures"), [(120, 10), (160, 80)])
+def test_supernodal_recursion_matches_column_recursion(backend, n_blocks, closures):
+    # Many loop closures make wide supernodes (padded batches of several sizes).
+    N, _ = survey_network(n_blocks, seed=3, closures=closures)
+    L, d, _ = factorize(N, backend=backend).lower()
+    ptr, rows, Z = ks._takahashi(ks._block_structure(L, 6), d, 6)
+    sizes = {(pc, pr) for _, _, pc, pr in ks._batches(ptr, rows, np.diff(ptr) - 1, 6)}
+    assert len(sizes) > 3
+    ref = _takahashi_by_columns(L, d, 6)
+    assert _rel(Z, ref) < 1e-11
+
+
+def test_block_pattern_leaves_N_alone(network):
+    N, links, _ = network
+    before = (N.indptr.copy(), N.indices.copy(), N.data.copy())
+    B = ks._block_pattern(N, 6)
+    assert all(np.array_equal(a, b) for a, b in zip(before, (N.indptr, N.indices, N.data), strict=True))
+    expected = np.zeros((300, 300), dtype=bool)
+    expected[links[:, 0], links[:, 1]] = expected[links[:, 1], links[:, 0]] = True
+    np.testing.assert_array_equal(B.toarray() > 0, expected)
