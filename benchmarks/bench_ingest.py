@@ -106,7 +106,8 @@ def child(mode: str, traj_path: str, cloud_path: str, out_path: str) -> None:
 
 def measure(mode: str, traj: Path, cloud: Path, folder: Path) -> dict:
     cmd = [sys.executable, __file__, "--child", mode, str(traj), str(cloud), str(folder / "seq.e57")]
-    res = subprocess.run(cmd, check=True, capture_output=True, text=True, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    res = subprocess.run(cmd, check=True, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONWARNINGS": "ignore"})
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
