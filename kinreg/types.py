@@ -275,6 +275,11 @@ class RelativeObservation:
     rank: int
     dt_s: float = 0.0
     decay: float | FloatArray = 0.0  # per axis where an array (6,)
+    # A trajectory link whose attitude error is coupled (GNSS/INS-like, kinreg.estimate.drift):
+    # its translation is (1 - coupling) Z.t + coupling R_i^T step_obj, with R_i the adjusted
+    # attitude of station i and step_obj the trajectory's object-frame step.
+    coupling: float = 0.0
+    step_obj: FloatArray | None = None
 
 
 @dataclass(frozen=True)

@@ -192,3 +192,29 @@ def test_a_coupled_attitude_error_is_taken_out_of_the_planes():
     assert out[1][0].d_m - wall.d_m == pytest.approx(-wall.normal @ np.array([0, 0.005, 0]), abs=1e-6)
     out, largest = deskewed_planes(stations, planes, result, replace(rates, coupling=0.0))
     assert largest == 0.0 and out[1][0] is wall
+
+
+@pytest.mark.parametrize("kappa", [0.0, 0.6, 1.0])
+def test_the_jacobians_of_a_coupled_trajectory_link_match_finite_differences(kappa):
+    """A trajectory link whose translation is partly the object-frame step turned by the first
+    station's own (adjusted) attitude: its Jacobians against finite differences."""
+    from kinreg.estimate import block
+
+    rng = np.random.default_rng(7)
+    poses = Pose.exp(rng.normal(0.0, [1.0, 1.0, 0.2, 0.1, 0.1, 0.8], (2, 6)))
+    Z = poses[0].inverse().compose(poses[1]).compose(Pose.exp(rng.normal(0.0, 0.01, 6)))
+    observation = RelativeObservation(ObservationKind.TRAJECTORY, 0, 1, Z, np.eye(6), 6, coupling=kappa,
+                                      step_obj=poses[1].t_xyz - poses[0].t_xyz + rng.normal(0.0, 0.01, 3))
+    weights = {k.value: 1.0 for k in ObservationKind}
+    active = block._arrays([observation], np.ones(1, dtype=bool), -np.ones(2, dtype=int), weights)
+    velocity = np.zeros((0, 6))
+    e0, J = block._linearise(poses, velocity, active)
+    for node in (0, 1):
+        numeric = np.zeros((6, 6))
+        for axis in range(6):
+            step = np.zeros((2, 6))
+            step[node, axis] = 1e-7
+            e1, _ = block._linearise(poses.compose(Pose.exp(step)), velocity, active, jacobians=False)
+            numeric[:, axis] = (e1[0] - e0[0]) / 1e-7
+        scale = max(1.0, np.abs(numeric).max())
+        assert np.allclose(J[0, node], numeric, atol=2e-2 * scale), (node, J[0, node], numeric)

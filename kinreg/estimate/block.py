@@ -64,6 +64,8 @@ class _Active:
     P: FloatArray
     dt: np.ndarray
     decay: np.ndarray  # (k, 6)
+    coupling: np.ndarray  # (k,)
+    step: np.ndarray  # (k, 3): the coupled trajectory links' object-frame steps
 
 
 def velocity_nodes(observations: list[RelativeObservation], n: int) -> np.ndarray:
@@ -96,7 +98,9 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     P = np.stack([o.info for o in obs]) * np.array([weights[k] for k in kinds])[:, None, None]
     return _Active(idx, kinds, nodes, pose, station, Pose.stack([o.Z for o in obs]), P,
                    np.array([o.dt_s for o in obs]),
-                   np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6))
+                   np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6),
+                   np.array([o.coupling for o in obs]),
+                   np.array([np.zeros(3) if o.step_obj is None else o.step_obj for o in obs]).reshape(-1, 3))
 
 
 def _to_station_axes(R: FloatArray) -> FloatArray:
@@ -123,7 +127,15 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
         T_i = poses[i]
         rel = T_i.inverse().compose(poses[j])
         rel = Pose(np.where(st[:, None], T_i.quat_wxyz, rel.quat_wxyz), np.where(st[:, None], T_i.t_xyz, rel.t_xyz))
-        e[p] = a.Z[p].inverse().compose(rel).log()
+        Z = a.Z[p]
+        kappa = a.coupling[p]
+        coupled = np.flatnonzero(kappa > 0.0)
+        if len(coupled):  # the translation turned by the adjusted attitude of station i
+            turned = np.einsum("kji,kj->ki", T_i.rotation_matrix[coupled], a.step[p[coupled]])
+            t = Z.t_xyz.copy()
+            t[coupled] = (1.0 - kappa[coupled, None]) * t[coupled] + kappa[coupled, None] * turned
+            Z = Pose(Z.quat_wxyz, t)
+        e[p] = Z.inverse().compose(rel).log()
         v = a.nodes[p, 2]
         has_v = np.flatnonzero(v >= 0)
         S = None
@@ -135,6 +147,9 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J_i[st] = np.eye(6)
             J_j = np.broadcast_to(np.eye(6), J_i.shape).copy()
             J_j[st] = 0.0
+            if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
+                R_Zt = np.transpose(Z.rotation_matrix[coupled], (0, 2, 1))
+                J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
             J[p, 0], J[p, 1] = J_i, J_j
             if S is not None:
                 J[p[has_v], 2] = S  # S_j's own dependence on T_j is of the order dt |v| and left out

@@ -22,7 +22,7 @@ from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.estimate.pairwise import adjust_pair
-from kinreg.geometry import Pose, pose_sigmas, skew
+from kinreg.geometry import Pose, pose_sigmas
 from kinreg.types import (
     BlockResult,
     Link,
@@ -128,11 +128,11 @@ def block_observations(
     relative pose between consecutive quasi-static stations of the same run, once, weighted by the
     drift rates (plus both scans' window bias: the block's unknowns are scan frames).
 
-    With a ``previous`` adjustment and a coupling ``kappa`` (:class:`DriftRates`), the trajectory's
-    step enters as ``(1 - kappa)`` times its step in its own scan frame plus ``kappa`` times its
-    object-frame step turned into the previously adjusted scan frame (whose attitude uncertainty is
-    added to the link's covariance): a trajectory whose positions are measured apart from its
-    attitude (GNSS/INS) then no longer carries its attitude error into the links."""
+    With a coupling ``kappa`` (:class:`DriftRates`), the trajectory's step enters as
+    ``(1 - kappa)`` times its step in its own scan frame plus ``kappa`` times its object-frame step
+    turned into the adjusted scan frame (the block's own attitude of the first station, an
+    unknown): a trajectory whose positions are measured apart from its attitude (GNSS/INS) then
+    no longer carries its attitude error into the links. ``previous`` is not used by the links."""
     observations = [
         RelativeObservation(ObservationKind.PLANES, link.scan_i, link.scan_j, link.T_i_j_planes,
                             link.info_planes, link.rank)
@@ -152,11 +152,9 @@ def block_observations(
         # link itself then keeps the floors only.
         cov = (rates.covariance(0.0 if rates.state_space else dt, sa.T_obj_scan)
                + window_bias_covariance(sa, sa.T_obj_scan, rates) + window_bias_covariance(sb, sa.T_obj_scan, rates))
-        if previous is not None and rates.coupling > 0.0:
-            Z, cov = _coupled(Z, cov, sb.T_obj_scan.t_xyz - sa.T_obj_scan.t_xyz, previous.poses[a],
-                              previous.cov_xi[a], rates.coupling)
         observations.append(RelativeObservation(ObservationKind.TRAJECTORY, a, b, Z, np.linalg.inv(cov), 6,
-                                                dt_s=dt if rates.state_space else 0.0))
+                                                dt_s=dt if rates.state_space else 0.0, coupling=rates.coupling,
+                                                step_obj=sb.T_obj_scan.t_xyz - sa.T_obj_scan.t_xyz))
         if rates.state_space:
             observations.append(drift_observation(rates, a, dt, last))
             last = (a, dt)
@@ -210,15 +208,3 @@ class Network:
 
     def with_links(self, links: Sequence[Link]) -> Network:
         return replace(self, links=tuple(links))
-
-
-def _coupled(Z: Pose, cov: np.ndarray, step_obj: np.ndarray, T_adjusted: Pose, cov_adjusted: np.ndarray,
-             kappa: float) -> tuple[Pose, np.ndarray]:
-    """A trajectory link whose translation is ``kappa`` parts the object-frame step turned into the
-    adjusted scan frame (see :func:`block_observations`), with that frame's attitude uncertainty."""
-    step_adjusted = T_adjusted.rotation_matrix.T @ step_obj
-    t = (1.0 - kappa) * Z.t_xyz + kappa * step_adjusted
-    J = kappa * skew(step_adjusted)  # d(R^T s)/d(phi) for a right perturbation R exp(phi)
-    cov = cov.copy()
-    cov[:3, :3] += J @ cov_adjusted[3:, 3:] @ J.T
-    return Pose(Z.quat_wxyz, t), cov
