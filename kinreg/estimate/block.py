@@ -256,7 +256,7 @@ def adjust_block(
             continue
         last_round = []
         if config.variance_components and vce_rounds < config.max_variance_rounds:
-            new_weights = _variance_components(tests, weights)
+            new_weights = _variance_components(tests, weights, config.alpha)
             changed = any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
             weights = new_weights
             vce_rounds += 1
@@ -537,11 +537,14 @@ def _worst_outliers(tests: list[ObservationTest], alpha: float, budget: int) -> 
     return chosen
 
 
-def _variance_components(tests: list[ObservationTest], weights: dict[str, float]) -> dict[str, float]:
+def _variance_components(tests: list[ObservationTest], weights: dict[str, float],
+                         alpha: float) -> dict[str, float]:
     """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current
-    weights; the new weight is the current one divided by sigma_g^2, never above the a-priori
-    weight. Kinds with too little redundancy (< 5) keep their weight: their component cannot be
-    estimated."""
+    weights; a group's weight is divided by sigma_g^2, never above the a-priori weight, and
+    lowered only where its own chi-square test rejects the current model
+    (``(e^T P e)_g > chi2(1 - alpha, r_g)``).
+    Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
+    """
     new = dict(weights)
     for kind in weights:
         group = [t for t in tests if t.kind.value == kind and not t.rejected]
@@ -551,7 +554,12 @@ def _variance_components(tests: list[ObservationTest], weights: dict[str, float]
         omega = sum(t.vtpv for t in group)
         # Only ever inflate the a-priori model: errors shared by all links of a scan (plane-fit
         # systematics) and the trajectory's drift (smooth in time) are invisible in residuals,
-        # so a factor below 1 would make the reported sigmas too optimistic.
+        # so a factor below 1 would make the reported sigmas too optimistic. And only where the
+        # residuals show the model too optimistic: at a low redundancy the estimate scatters
+        # widely (r = 6, four control points: chi-square/6 exceeds 1 in 42% of draws of a right
+        # model), so inflating on every estimate above 1 inflates on average. A group inflated too
+        # far in an earlier round (by another group's misfit) goes back towards its a-priori weight.
+        if omega > r and omega <= stats.chi2.ppf(1.0 - alpha, r):
+            continue
         new[kind] = min(1.0, weights[kind] / max(omega / r, 1e-6))
     return new
-
