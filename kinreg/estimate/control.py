@@ -183,8 +183,8 @@ def tie_points(assignment: Assignment, stations: Sequence[Station], trajectories
         own = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC and s.run == still.run]
         k = min(own, key=lambda k: abs(stations[k].t_s - still.t_s))
         traj = trajectories[still.run]
-        T_station, T_still = traj.pose_at(np.array([stations[k].t_s, still.t_s]))
-        q = T_station.inverse().compose(T_still).apply(reference[None, :])[0]
+        both = traj.pose_at(np.array([stations[k].t_s, still.t_s]))
+        q = both[0].inverse().compose(both[1]).apply(reference[None, :])[0]
         ties.append(ControlTie(name, k, q, np.asarray(xyz, dtype=np.float64),
                                sigma**2 * np.eye(3) + still.scatter_m2, still.t_s, still.t_s - stations[k].t_s))
     return tuple(ties)
