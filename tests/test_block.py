@@ -154,7 +154,8 @@ def test_variance_components_inflate_only_where_the_group_test_rejects():
     assert _variance_components(group(ObservationKind.STATION, 6, 1.8), weights, 0.001)["station"] == 1.0
     assert _variance_components(group(ObservationKind.STATION, 6, 5.0), weights, 0.001)["station"] == pytest.approx(0.2)
     # a large group: 1.5 times is far beyond chance
-    assert _variance_components(group(ObservationKind.PLANES, 500, 1.5), weights, 0.001)["planes"] == pytest.approx(1 / 1.5)
+    planes = _variance_components(group(ObservationKind.PLANES, 500, 1.5), weights, 0.001)["planes"]
+    assert planes == pytest.approx(1 / 1.5)
 
 
 def test_gross_error_is_found_by_data_snooping():
