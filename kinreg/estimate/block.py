@@ -5,7 +5,8 @@ Unknowns: the poses ``T_obj_k`` of all stations, each as a right perturbation
 frame). Observations: relative poses between stations with 6x6 (possibly rank-deficient)
 information matrices (:class:`~kinreg.types.RelativeObservation`): the plane-only information
 of every pairwise link, the trajectory's own relative pose between consecutive stations (once),
-and direct observations of station poses. Gauss-Newton on SE(3) with a sparse normal matrix
+direct observations of station poses, and surveyed points on the pose interpolated between two
+stations (control points). Gauss-Newton on SE(3) with a sparse normal matrix
 (CHOLMOD where available). Fixed stations define the datum.
 
 After convergence: the a-posteriori standard deviation of unit weight and the global test,
@@ -51,13 +52,16 @@ class _Active:
     (poses on SE(3)), then the drift velocities n..n+m-1 (6-vectors, one per trajectory link
     that has one). ``nodes`` (k, 3): per observation its nodes in slot order (-1: none): pose
     observations (first station, second station, drift velocity), drift observations (velocity
-    of the first link, of the second)."""
+    of the first link, of the second), point observations (first station, second station)."""
 
     idx: np.ndarray
     kinds: np.ndarray
     nodes: np.ndarray
     pose: np.ndarray  # PLANES, TRAJECTORY, STATION
     station: np.ndarray  # STATION
+    point: np.ndarray  # POINT
+    levers: FloatArray  # (k, 2, 3) POINT: the point in its stations' frames
+    share: FloatArray  # (k,) POINT: the second station's weight (0 without one)
     Z: Pose
     P: FloatArray
     dt: np.ndarray
@@ -81,10 +85,13 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     kinds = np.array([o.kind.value for o in obs])
     drift = kinds == ObservationKind.DRIFT.value
     station = kinds == ObservationKind.STATION.value
+    point = kinds == ObservationKind.POINT.value
     i = np.array([o.i for o in obs], dtype=int)
     j = np.array([o.j for o in obs], dtype=int)
     nodes = -np.ones((len(obs), 3), dtype=int)
-    pose = ~drift
+    nodes[point, 0] = i[point]
+    nodes[point, 1] = j[point]
+    pose = ~drift & ~point
     nodes[pose, 0] = i[pose]
     nodes[pose & ~station, 1] = j[pose & ~station]
     trajectory = kinds == ObservationKind.TRAJECTORY.value
@@ -92,7 +99,9 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     nodes[drift, 0] = vnode[i[drift]]
     nodes[drift, 1] = np.where(j[drift] >= 0, vnode[np.maximum(j[drift], 0)], -1)
     P = np.stack([o.info for o in obs]) * np.array([weights[k] for k in kinds])[:, None, None]
-    return _Active(idx, kinds, nodes, pose, station, Pose.stack([o.Z for o in obs]), P,
+    levers = np.array([np.zeros((2, 3)) if o.levers_m is None else o.levers_m for o in obs]).reshape(-1, 2, 3)
+    share = np.array([o.share if o.j >= 0 else 0.0 for o in obs]).reshape(-1)
+    return _Active(idx, kinds, nodes, pose, station, point, levers, share, Pose.stack([o.Z for o in obs]), P,
                    np.array([o.dt_s for o in obs]),
                    np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6))
 
@@ -109,7 +118,8 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
                jacobians: bool = True) -> tuple[FloatArray, FloatArray]:
     """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) to first order
     in the residual. Pose observations: ``e = log(Z^-1 T_i^-1 T_j) - dt S_j v`` (``log(Z^-1 T_i)``
-    for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``)."""
+    for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``); point observations
+    ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes)."""
     k = len(a.idx)
     e = np.zeros((k, 6))
     J = np.zeros((k if jacobians else 0, 3, 6, 6))  # empty without jacobians
@@ -136,7 +146,10 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J[p, 0], J[p, 1] = J_i, J_j
             if S is not None:
                 J[p[has_v], 2] = S  # S_j's own dependence on T_j is of the order dt |v| and left out
-    d = np.flatnonzero(~a.pose)
+    q = np.flatnonzero(a.point)
+    if len(q):
+        _point_residuals(poses, a, q, e, J if jacobians else None)
+    d = np.flatnonzero(~a.pose & ~a.point)
     if len(d):
         n = len(poses)
         first, second = a.nodes[d, 0] - n, a.nodes[d, 1] - n
@@ -147,6 +160,26 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J[d, 0] = -decay[:, :, None] * np.eye(6)
             J[d[pair], 1] = np.eye(6)
     return e, J
+
+
+def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: FloatArray | None) -> None:
+    """Point observations ``q``: their residuals into ``e`` and (with ``J``) their Jacobians, for a
+    right perturbation ``(rho, phi)`` of each station: ``d(T l) = R (rho - [l]x phi)``."""
+    s = a.share[q]
+    predicted = np.zeros((len(q), 3))
+    for slot, weight in ((0, 1.0 - s), (1, s)):
+        node = a.nodes[q, slot]
+        has = np.flatnonzero(node >= 0)
+        if not len(has):
+            continue
+        T = poses[node[has]]
+        lever = a.levers[q[has], slot]
+        predicted[has] += weight[has, None] * T.apply(lever)
+        if J is not None:
+            R = T.rotation_matrix
+            J[q[has], slot, :3, :3] = weight[has, None, None] * R
+            J[q[has], slot, :3, 3:] = -weight[has, None, None] * R @ skew(lever)
+    e[q, :3] = predicted - a.Z[q].t_xyz
 
 
 def _cost(poses: Pose, velocity: FloatArray, a: _Active) -> float:
@@ -212,7 +245,7 @@ def adjust_block(
     progress = progress or NullProgress()
     n = len(poses_initial)
     fixed = np.asarray(fixed, dtype=bool)
-    if not fixed.any() and not any(o.kind is ObservationKind.STATION for o in observations):
+    if not fixed.any() and not any(o.kind in (ObservationKind.STATION, ObservationKind.POINT) for o in observations):
         raise EstimationError("no datum: fix at least one station or observe station poses directly")
     _check_datum(observations, fixed, n)
 
@@ -338,7 +371,7 @@ def _moved_poses(poses: Pose, shift: FloatArray) -> Pose:
 def _moved(observation: RelativeObservation, shift: FloatArray) -> RelativeObservation:
     """A station observation (an absolute pose) with the origin moved by ``shift``; relative
     observations do not depend on the origin."""
-    if observation.kind is not ObservationKind.STATION:
+    if observation.kind not in (ObservationKind.STATION, ObservationKind.POINT):
         return observation
     return dataclasses.replace(observation, Z=_moved_poses(observation.Z, shift))
 
@@ -349,7 +382,7 @@ def loose_parts(observations: list[RelativeObservation], fixed: np.ndarray, n: i
     labels = _components(observations + [RelativeObservation(ObservationKind.PLANES, n - 1, n - 1,
                                                                Pose.identity(), np.zeros((6, 6)), 0)])
     anchored = set(labels[np.flatnonzero(fixed)])
-    anchored |= {labels[o.i] for o in observations if o.kind is ObservationKind.STATION}
+    anchored |= {labels[o.i] for o in observations if o.kind in (ObservationKind.STATION, ObservationKind.POINT)}
     return [np.flatnonzero(labels == c) for c in sorted(set(labels) - anchored)]
 
 
