@@ -513,8 +513,9 @@ def _test_observations(state, observations, active, fixed, vnode, free_index, we
     r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
     vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
     statistic = np.einsum("ki,kij,kj->k", z, np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True), z)
-    # An uncontrolled observation (redundancy ~ 0) cannot be tested.
-    statistic = np.where(r_k > 1e-6, statistic, np.nan)
+    # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
+    # positive (an unconverged state: the normal matrix is not its residuals' own).
+    statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
     keep = dof > 0
     tests = [
         ObservationTest(int(a.idx[k]), ObservationKind(a.kinds[k]), int(observations[a.idx[k]].i),
