@@ -250,6 +250,7 @@ class ObservationKind(enum.Enum):
     TRAJECTORY = "trajectory"  # the trajectory's relative pose between consecutive stations
     STATION = "station"  # a direct observation of one station's pose (static scans with sigmas)
     DRIFT = "drift"  # how the trajectory's drift velocity changes from one link to the next
+    POINT = "point"  # a surveyed point on the pose interpolated between two stations (control points)
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,7 +266,13 @@ class RelativeObservation:
     observation over ``dt_s`` seconds predicts ``T_i^-1 T_j = Z exp(dt_s S_j v)`` (``S_j`` turns
     object axes into station j's). A ``DRIFT`` observation ties the velocity of the link from j
     to that of the link from i, ``v_j - decay v_i ~ N(0, info^-1)`` (``decay`` per axis) (first-order Gauss-Markov), or
-    with ``j = -1`` observes ``v_i ~ N(0, info^-1)`` (its stationary spread); ``Z`` is unused."""
+    with ``j = -1`` observes ``v_i ~ N(0, info^-1)`` (its stationary spread); ``Z`` is unused.
+
+    A ``POINT`` observation (a control point) observes the object-frame position ``Z.t_xyz`` of a
+    point that lies at ``levers_m[0]`` in station i's frame and ``levers_m[1]`` in station j's,
+    on the pose interpolated between them: ``(1 - share) T_i l_0 + share T_j l_1`` (``j = -1``:
+    station i alone); its information is on the object-frame residual (the first three rows of
+    the twist order), rank 3."""
 
     kind: ObservationKind
     i: int
@@ -280,6 +287,8 @@ class RelativeObservation:
     # attitude of station i and step_obj the trajectory's object-frame step.
     coupling: float = 0.0
     step_obj: FloatArray | None = None
+    levers_m: FloatArray | None = None  # POINT: (2, 3) the point in station i's and j's frames
+    share: float = 0.0  # POINT: the weight of station j in the interpolated pose
 
 
 @dataclass(frozen=True)

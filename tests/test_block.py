@@ -5,9 +5,9 @@ import pytest
 
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
-from kinreg.estimate.block import adjust_block
+from kinreg.estimate.block import _variance_components, adjust_block
 from kinreg.geometry import Pose, rotvec_to_quat
-from kinreg.types import ObservationKind, RelativeObservation
+from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
 
 
 def true_stations(n: int, rng) -> Pose:
@@ -122,6 +122,40 @@ def test_variance_components_rescale_a_too_optimistic_group():
     res = adjust_block(truth, obs, fixed, BlockConfig(variance_components=True, data_snooping=False))
     assert res.variance_components["trajectory"] == pytest.approx(9.0, rel=0.35)
     assert res.variance_components["planes"] == pytest.approx(1.0, rel=0.35)
+
+
+def test_a_right_model_at_low_redundancy_is_not_inflated_on_average():
+    """Four position observations of a rigid network (redundancy ~6, like four control points as
+    the only datum), drawn from their own model: the STATION component stays 1 (it was inflated
+    whenever the chi-square/6 draw exceeded 1, in about 40% of the draws)."""
+    inflated = 0
+    for seed in range(20):
+        rng = np.random.default_rng(100 + seed)
+        n = 12
+        truth = true_stations(n, rng)
+        cov_p = np.diag(np.square([2e-4] * 3 + [2e-5] * 3))
+        obs = [observe(truth, i, j, cov_p, ObservationKind.PLANES, rng) for i in range(n) for j in range(i + 1, n)]
+        info = np.zeros((6, 6))
+        info[:3, :3] = np.eye(3) / 0.003**2
+        for k in (0, 3, 6, 9):
+            Z = Pose(truth.quat_wxyz[k], truth.t_xyz[k] + truth[k].rotation_matrix @ rng.normal(0, 0.003, 3))
+            obs.append(RelativeObservation(ObservationKind.STATION, k, -1, Z, info, 3))
+        res = adjust_block(truth, obs, np.zeros(n, dtype=bool), BlockConfig(data_snooping=False))
+        inflated += res.variance_components["station"] > 1.0
+    assert inflated <= 1
+
+
+def test_variance_components_inflate_only_where_the_group_test_rejects():
+    def group(kind, r, vtpv_each):
+        return [ObservationTest(k, kind, k, -1, float("nan"), 3, 1.0, float("nan"), False, vtpv_each) for k in range(r)]
+
+    weights = {"station": 1.0, "planes": 1.0}
+    # r = 6 at 1.8 times the expected: chance (p = 0.06), kept; at 5 times: too optimistic, inflated
+    assert _variance_components(group(ObservationKind.STATION, 6, 1.8), weights, 0.001)["station"] == 1.0
+    assert _variance_components(group(ObservationKind.STATION, 6, 5.0), weights, 0.001)["station"] == pytest.approx(0.2)
+    # a large group: 1.5 times is far beyond chance
+    planes = _variance_components(group(ObservationKind.PLANES, 500, 1.5), weights, 0.001)["planes"]
+    assert planes == pytest.approx(1 / 1.5)
 
 
 def test_gross_error_is_found_by_data_snooping():

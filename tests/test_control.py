@@ -16,6 +16,7 @@ from kinreg.config import BlockConfig, ControlConfig, KinregConfig
 from kinreg.errors import InputError
 from kinreg.estimate.block import adjust_block
 from kinreg.estimate.control import (
+    Assignment,
     ControlTie,
     assign_points,
     control_observations,
@@ -213,3 +214,59 @@ def test_simulated_run_with_four_control_points_and_a_wrong_one(tmp_path):
     truth = read_trajectory(data / "truth_trajectory.txt").pose_at(rows["t"].astype(float)).t_xyz
     err = np.column_stack([rows["x"], rows["y"], rows["z"]]) - truth
     assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.01
+
+
+def _walk_stations(traj: Trajectory, times: np.ndarray) -> tuple[list[Station], Pose, Pose]:
+    """Stations at ``times`` on ``traj`` and their adjusted poses: each turned about its own
+    position and shifted by a correction that grows along the run (1 mdeg and (1, -0.5, 0.3) mm
+    per station)."""
+    initial = traj.pose_at(times)
+    stations = [_station(k, initial[k], float(t)) for k, t in enumerate(times)]
+    k = np.arange(len(times))[:, None]
+    turn = rotvec_to_quat(np.radians(1e-3) * k * np.array([[0.3, -0.2, 1.0]]))
+    adjusted = Pose(Pose(turn, np.zeros((len(k), 3))).compose(Pose(initial.quat_wxyz, np.zeros((len(k), 3)))).quat_wxyz,
+                    initial.t_xyz + 1e-3 * k * np.array([[1.0, -0.5, 0.3]]))
+    return stations, initial, adjusted
+
+
+def test_the_control_point_lies_where_the_corrected_trajectory_puts_it():
+    """A stand-still between two stations 6 s apart: the tie interpolates between them as the
+    corrected trajectory does, where the nearer station alone errs by the correction's change
+    over the time to it (2 s at 1.2 mm per station here)."""
+    from kinreg.estimate.control import stand_still_between, tie_points
+    from kinreg.estimate.correction import DriftCorrection
+
+    traj, stills = _still_trajectory()
+    config = ControlConfig(reference_point_m=(0.0, 0.0, -1.3))  # a pole to the ground
+    still = stand_still_between(traj, *stills[0], np.asarray(config.reference_point_m))  # mean time 110 s
+    stations, initial, adjusted = _walk_stations(traj, 102.0 + 6.0 * np.arange(6))
+    assignment = Assignment(("P",), still.xyz[None, :], np.array([0.003]), (still,), ())
+    (tie,) = tie_points(assignment, stations, [traj], config)
+    assert (tie.station, tie.other) == (1, 2) and tie.share == pytest.approx(2.0 / 6.0, abs=0.01)
+    correction = DriftCorrection.from_stations(np.array([s.t_s for s in stations]), initial, adjusted, traj)
+    at_still = correction.apply_to_trajectory(Trajectory(np.array([still.t_s]), traj.pose_at(np.array([still.t_s]))))
+    corrected = at_still.poses.apply(np.asarray(config.reference_point_m)[None, :])[0]
+    nearest_only = adjusted[tie.station].apply(tie.q_scan[None, :])[0]
+    assert np.linalg.norm(tie.predicted(adjusted) - corrected) < 2e-5
+    assert np.linalg.norm(nearest_only - corrected) > 3e-4
+
+
+def test_the_point_observation_jacobians_match_finite_differences():
+    from kinreg.estimate.block import _arrays, _linearise
+
+    traj, stills = _still_trajectory()
+    stations, _, adjusted = _walk_stations(traj, 102.0 + 6.0 * np.arange(4))
+    tie = ControlTie("P", 1, np.array([0.3, -0.2, -1.3]), np.array([5.0, 0.5, 0.0]), 1e-6 * np.eye(3), 110.0, 2.0,
+                     2, np.array([-0.4, 0.1, -1.2]), 0.3)
+    rates = DriftRates(np.zeros(3), np.zeros(3), 1e-4, 1e-5)
+    observations = control_observations([tie], stations, rates)
+    assert observations[0].rank == 3 and (observations[0].i, observations[0].j) == (1, 2)
+    a = _arrays(observations, np.ones(1, dtype=bool), -np.ones(4, dtype=int), {"point": 1.0})
+    e, J = _linearise(adjusted, np.zeros((0, 6)), a)
+    assert np.allclose(e[0, :3], tie.predicted(adjusted) - tie.xyz) and np.allclose(e[0, 3:], 0.0)
+    for slot, station in ((0, 1), (1, 2)):
+        for axis in range(6):
+            step = np.zeros((4, 6))
+            step[station, axis] = 1e-6
+            moved, _ = _linearise(adjusted.compose(Pose.exp(step)), np.zeros((0, 6)), a, jacobians=False)
+            assert np.allclose((moved[0] - e[0]) / 1e-6, J[0, slot, :, axis], atol=1e-5)

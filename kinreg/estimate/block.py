@@ -7,7 +7,8 @@ trajectory link (6 values, object axes). Observations (:class:`~kinreg.types.Rel
 each on up to three of these nodes, with 6x6 possibly rank-deficient information matrices): the
 plane-only information of every pairwise link, the trajectory's own relative pose between
 consecutive stations (once; less its drift velocity times its duration), the drift velocity's
-change from one link to the next, and direct observations of station poses. Damped Gauss-Newton
+change from one link to the next, direct observations of station poses, and surveyed points on
+the pose interpolated between two stations (control points). Damped Gauss-Newton
 on SE(3) with a sparse normal matrix (CHOLMOD where available). Fixed stations define the datum.
 
 After convergence: the a-posteriori standard deviation of unit weight and the global test,
@@ -53,13 +54,16 @@ class _Active:
     (poses on SE(3)), then the drift velocities n..n+m-1 (6-vectors, one per trajectory link
     that has one). ``nodes`` (k, 3): per observation its nodes in slot order (-1: none): pose
     observations (first station, second station, drift velocity), drift observations (velocity
-    of the first link, of the second)."""
+    of the first link, of the second), point observations (first station, second station)."""
 
     idx: np.ndarray
     kinds: np.ndarray
     nodes: np.ndarray
     pose: np.ndarray  # PLANES, TRAJECTORY, STATION
     station: np.ndarray  # STATION
+    point: np.ndarray  # POINT
+    levers: FloatArray  # (k, 2, 3) POINT: the point in its stations' frames
+    share: FloatArray  # (k,) POINT: the second station's weight (0 without one)
     Z: Pose
     P: FloatArray
     dt: np.ndarray
@@ -85,10 +89,13 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     kinds = np.array([o.kind.value for o in obs])
     drift = kinds == ObservationKind.DRIFT.value
     station = kinds == ObservationKind.STATION.value
+    point = kinds == ObservationKind.POINT.value
     i = np.array([o.i for o in obs], dtype=int)
     j = np.array([o.j for o in obs], dtype=int)
     nodes = -np.ones((len(obs), 3), dtype=int)
-    pose = ~drift
+    nodes[point, 0] = i[point]
+    nodes[point, 1] = j[point]
+    pose = ~drift & ~point
     nodes[pose, 0] = i[pose]
     nodes[pose & ~station, 1] = j[pose & ~station]
     trajectory = kinds == ObservationKind.TRAJECTORY.value
@@ -96,7 +103,9 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     nodes[drift, 0] = vnode[i[drift]]
     nodes[drift, 1] = np.where(j[drift] >= 0, vnode[np.maximum(j[drift], 0)], -1)
     P = np.stack([o.info for o in obs]) * np.array([weights[k] for k in kinds])[:, None, None]
-    return _Active(idx, kinds, nodes, pose, station, Pose.stack([o.Z for o in obs]), P,
+    levers = np.array([np.zeros((2, 3)) if o.levers_m is None else o.levers_m for o in obs]).reshape(-1, 2, 3)
+    share = np.array([o.share if o.j >= 0 else 0.0 for o in obs]).reshape(-1)
+    return _Active(idx, kinds, nodes, pose, station, point, levers, share, Pose.stack([o.Z for o in obs]), P,
                    np.array([o.dt_s for o in obs]),
                    np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6),
                    np.array([o.coupling for o in obs]),
@@ -115,7 +124,8 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
                jacobians: bool = True) -> tuple[FloatArray, FloatArray]:
     """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) to first order
     in the residual. Pose observations: ``e = log(Z^-1 T_i^-1 T_j) - dt S_j v`` (``log(Z^-1 T_i)``
-    for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``)."""
+    for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``); point observations
+    ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes)."""
     k = len(a.idx)
     e = np.zeros((k, 6))
     J = np.zeros((k if jacobians else 0, 3, 6, 6))  # empty without jacobians
@@ -153,7 +163,10 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J[p, 0], J[p, 1] = J_i, J_j
             if S is not None:
                 J[p[has_v], 2] = S  # S_j's own dependence on T_j is of the order dt |v| and left out
-    d = np.flatnonzero(~a.pose)
+    q = np.flatnonzero(a.point)
+    if len(q):
+        _point_residuals(poses, a, q, e, J if jacobians else None)
+    d = np.flatnonzero(~a.pose & ~a.point)
     if len(d):
         n = len(poses)
         first, second = a.nodes[d, 0] - n, a.nodes[d, 1] - n
@@ -164,6 +177,26 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J[d, 0] = -decay[:, :, None] * np.eye(6)
             J[d[pair], 1] = np.eye(6)
     return e, J
+
+
+def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: FloatArray | None) -> None:
+    """Point observations ``q``: their residuals into ``e`` and (with ``J``) their Jacobians, for a
+    right perturbation ``(rho, phi)`` of each station: ``d(T l) = R (rho - [l]x phi)``."""
+    s = a.share[q]
+    predicted = np.zeros((len(q), 3))
+    for slot, weight in ((0, 1.0 - s), (1, s)):
+        node = a.nodes[q, slot]
+        has = np.flatnonzero(node >= 0)
+        if not len(has):
+            continue
+        T = poses[node[has]]
+        lever = a.levers[q[has], slot]
+        predicted[has] += weight[has, None] * T.apply(lever)
+        if J is not None:
+            R = T.rotation_matrix
+            J[q[has], slot, :3, :3] = weight[has, None, None] * R
+            J[q[has], slot, :3, 3:] = -weight[has, None, None] * R @ skew(lever)
+    e[q, :3] = predicted - a.Z[q].t_xyz
 
 
 def _cost(poses: Pose, velocity: FloatArray, a: _Active) -> float:
@@ -229,7 +262,7 @@ def adjust_block(
     progress = progress or NullProgress()
     n = len(poses_initial)
     fixed = np.asarray(fixed, dtype=bool)
-    if not fixed.any() and not any(o.kind is ObservationKind.STATION for o in observations):
+    if not fixed.any() and not any(o.kind in (ObservationKind.STATION, ObservationKind.POINT) for o in observations):
         raise EstimationError("no datum: fix at least one station or observe station poses directly")
     _check_datum(observations, fixed, n)
 
@@ -273,7 +306,7 @@ def adjust_block(
             continue
         last_round = []
         if config.variance_components and vce_rounds < config.max_variance_rounds:
-            new_weights = _variance_components(tests, weights)
+            new_weights = _variance_components(tests, weights, config.alpha)
             changed = any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
             weights = new_weights
             vce_rounds += 1
@@ -355,7 +388,7 @@ def _moved_poses(poses: Pose, shift: FloatArray) -> Pose:
 def _moved(observation: RelativeObservation, shift: FloatArray) -> RelativeObservation:
     """A station observation (an absolute pose) with the origin moved by ``shift``; relative
     observations do not depend on the origin."""
-    if observation.kind is not ObservationKind.STATION:
+    if observation.kind not in (ObservationKind.STATION, ObservationKind.POINT):
         return observation
     return dataclasses.replace(observation, Z=_moved_poses(observation.Z, shift))
 
@@ -366,7 +399,7 @@ def loose_parts(observations: list[RelativeObservation], fixed: np.ndarray, n: i
     labels = _components(observations + [RelativeObservation(ObservationKind.PLANES, n - 1, n - 1,
                                                                Pose.identity(), np.zeros((6, 6)), 0)])
     anchored = set(labels[np.flatnonzero(fixed)])
-    anchored |= {labels[o.i] for o in observations if o.kind is ObservationKind.STATION}
+    anchored |= {labels[o.i] for o in observations if o.kind in (ObservationKind.STATION, ObservationKind.POINT)}
     return [np.flatnonzero(labels == c) for c in sorted(set(labels) - anchored)]
 
 
@@ -497,8 +530,9 @@ def _test_observations(state, observations, active, fixed, vnode, free_index, we
     r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
     vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
     statistic = np.einsum("ki,kij,kj->k", z, np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True), z)
-    # An uncontrolled observation (redundancy ~ 0) cannot be tested.
-    statistic = np.where(r_k > 1e-6, statistic, np.nan)
+    # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
+    # positive (an unconverged state: the normal matrix is not its residuals' own).
+    statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
     keep = dof > 0
     # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
     normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
@@ -556,11 +590,14 @@ def _worst_outliers(tests: list[ObservationTest], alpha: float, budget: int) -> 
     return chosen
 
 
-def _variance_components(tests: list[ObservationTest], weights: dict[str, float]) -> dict[str, float]:
+def _variance_components(tests: list[ObservationTest], weights: dict[str, float],
+                         alpha: float) -> dict[str, float]:
     """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current
-    weights; the new weight is the current one divided by sigma_g^2, never above the a-priori
-    weight. Kinds with too little redundancy (< 5) keep their weight: their component cannot be
-    estimated."""
+    weights; a group's weight is divided by sigma_g^2, never above the a-priori weight, and
+    lowered only where its own chi-square test rejects the current model
+    (``(e^T P e)_g > chi2(1 - alpha, r_g)``).
+    Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
+    """
     new = dict(weights)
     for kind in weights:
         group = [t for t in tests if t.kind.value == kind and not t.rejected]
@@ -570,7 +607,12 @@ def _variance_components(tests: list[ObservationTest], weights: dict[str, float]
         omega = sum(t.vtpv for t in group)
         # Only ever inflate the a-priori model: errors shared by all links of a scan (plane-fit
         # systematics) and the trajectory's drift (smooth in time) are invisible in residuals,
-        # so a factor below 1 would make the reported sigmas too optimistic.
+        # so a factor below 1 would make the reported sigmas too optimistic. And only where the
+        # residuals show the model too optimistic: at a low redundancy the estimate scatters
+        # widely (r = 6, four control points: chi-square/6 exceeds 1 in 42% of draws of a right
+        # model), so inflating on every estimate above 1 inflates on average. A group inflated too
+        # far in an earlier round (by another group's misfit) goes back towards its a-priori weight.
+        if omega > r and omega <= stats.chi2.ppf(1.0 - alpha, r):
+            continue
         new[kind] = min(1.0, weights[kind] / max(omega / r, 1e-6))
     return new
-

@@ -14,7 +14,13 @@ from scipy import stats
 from kinreg.config import BlockConfig, Disconnected, DiscontinuityConfig, KinregConfig, StaticConfig, StaticDatum
 from kinreg.errors import ConfigError, EstimationError
 from kinreg.estimate.block import adjust_block, loose_parts
-from kinreg.estimate.control import ControlTie, control_observations, first_station_rotation, free_rotations
+from kinreg.estimate.control import (
+    ControlTie,
+    control_covariance,
+    control_observations,
+    first_station_rotation,
+    free_rotations,
+)
 from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
@@ -214,20 +220,20 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
 
 def _leave_one_out(tie: ControlTie, result: BlockResult, network: Network, rates: DriftRates) -> float:
     """The test statistic of control point ``tie`` against ``result`` (adjusted without it)."""
-    observation = control_observations([tie], network.stations, rates, result)[0]
-    T = result.poses[tie.station]
-    J = T.rotation_matrix @ np.hstack([np.eye(3), -skew(tie.q_scan)])
-    d = T.apply(tie.q_scan[None, :])[0] - tie.xyz
-    # the observation's covariance C: its information is J^T C^-1 J, so C = (J P^+ J^T)^+ ... formed
-    # directly instead: the survey's plus the trajectory's over the time to the station
-    C = _observation_covariance(observation.info, J)
-    return float(d @ np.linalg.solve(C + J @ result.cov_xi[tie.station] @ J.T, d))
+    C = control_covariance(tie, network.stations, rates, result)
+    d = tie.predicted(result.poses) - tie.xyz
+    # The prediction's covariance: the blend of the two stations' (an upper bound whatever their
+    # correlation, which the block result does not keep: Var((1-s) a + s b) <= (1-s) Var a + s Var b).
+    prediction = (1.0 - tie.share) * _predicted_covariance(tie.station, tie.q_scan, result)
+    if tie.other >= 0:
+        prediction += tie.share * _predicted_covariance(tie.other, tie.q_other, result)
+    return float(d @ np.linalg.solve(C + prediction, d))
 
 
-def _observation_covariance(info: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """The 3x3 covariance C of a control observation whose information is ``J^T C^-1 J``."""
-    J_pinv = np.linalg.pinv(J)  # J J_pinv = I (J has full row rank)
-    return np.linalg.inv(J_pinv.T @ info @ J_pinv)
+def _predicted_covariance(k: int, q: np.ndarray, result: BlockResult) -> np.ndarray:
+    """The covariance (3, 3) of the point ``q`` of station ``k``'s scan frame, from ``result``."""
+    J = result.poses[k].rotation_matrix @ np.hstack([np.eye(3), -skew(q)])
+    return J @ result.cov_xi[k] @ J.T
 
 
 def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
