@@ -5,7 +5,8 @@ import pytest
 
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
-from kinreg.estimate.block import _variance_components, adjust_block
+from kinreg.estimate.block import adjust_block
+from kinreg.estimate.snooping import variance_components
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
 
@@ -151,10 +152,10 @@ def test_variance_components_inflate_only_where_the_group_test_rejects():
 
     weights = {"station": 1.0, "planes": 1.0}
     # r = 6 at 1.8 times the expected: chance (p = 0.06), kept; at 5 times: too optimistic, inflated
-    assert _variance_components(group(ObservationKind.STATION, 6, 1.8), weights, 0.001)["station"] == 1.0
-    assert _variance_components(group(ObservationKind.STATION, 6, 5.0), weights, 0.001)["station"] == pytest.approx(0.2)
+    assert variance_components(group(ObservationKind.STATION, 6, 1.8), weights, 0.001)["station"] == 1.0
+    assert variance_components(group(ObservationKind.STATION, 6, 5.0), weights, 0.001)["station"] == pytest.approx(0.2)
     # a large group: 1.5 times is far beyond chance
-    planes = _variance_components(group(ObservationKind.PLANES, 500, 1.5), weights, 0.001)["planes"]
+    planes = variance_components(group(ObservationKind.PLANES, 500, 1.5), weights, 0.001)["planes"]
     assert planes == pytest.approx(1 / 1.5)
 
 
