@@ -56,9 +56,9 @@ except ImportError:  # SuiteSparse or the extra is missing: the scipy backend ta
     HAVE_CHOLMOD = False
 
 try:
-    from threadpoolctl import threadpool_limits
+    from threadpoolctl import ThreadpoolController
 except ImportError:  # a dependency; without it the recursion runs with the BLAS default threads
-    threadpool_limits = None
+    ThreadpoolController = None
 
 Backend = Literal["cholmod", "scipy"]
 
@@ -298,7 +298,7 @@ def selected_inverse(N: sp.spmatrix | sp.sparray, block_size: int = 6, pairs: np
         del L  # the blocks hold the same numbers
         # Batches of small dense products: BLAS threads gain nothing there, and with the cores
         # busy (a shared machine) they waited on each other: 100,000 stations 8 s -> 27 s.
-        with threadpool_limits(1, "blas") if threadpool_limits else contextlib.nullcontext():
+        with _one_blas_thread(nb):
             ptr, rows, Z = _takahashi(structure, d, bs)
     except _PatternNotClosedError:  # not expected with factorize's block ordering, kept as a safety net
         log.debug("selected_inverse: factor not block aligned or pattern not closed, solving instead")
@@ -323,6 +323,23 @@ def selected_inverse(N: sp.spmatrix | sp.sparray, block_size: int = 6, pairs: np
         if not np.all(found):
             pair_blocks[~found] = _blocks_by_solving(factor, bs, pairs[~found])
     return diag_blocks, pair_blocks
+
+
+# From this many blocks on, the recursion runs with one BLAS thread (below, it takes milliseconds).
+_MANY_BLOCKS = 10_000
+_controller: list = []  # the process's threadpoolctl controller, made once
+
+
+def _one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
+    """One BLAS thread for a large recursion. threadpoolctl finds the libraries with a ctypes
+    callback, in which a KeyboardInterrupt is lost (printed as ignored): a Ctrl-C in that moment
+    would let the run go on and end with exit 0. So the libraries are looked up once per process,
+    and only for a network large enough to gain from it."""
+    if ThreadpoolController is None or n_blocks < _MANY_BLOCKS:
+        return contextlib.nullcontext()
+    if not _controller:
+        _controller.append(ThreadpoolController())
+    return _controller[0].limit(limits=1, user_api="blas")
 
 
 class _PatternNotClosedError(Exception):
