@@ -36,6 +36,7 @@ batched numpy step (100,000 stations: 41,605 supernodes, 205 depths).
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 from collections.abc import Callable
 from typing import Literal
@@ -327,7 +328,6 @@ def selected_inverse(N: sp.spmatrix | sp.sparray, block_size: int = 6, pairs: np
 
 # From this many blocks on, the recursion runs with one BLAS thread (below, it takes milliseconds).
 _MANY_BLOCKS = 10_000
-_controller: list = []  # the process's threadpoolctl controller, made once
 
 
 def _one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
@@ -337,9 +337,13 @@ def _one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
     and only for a network large enough to gain from it."""
     if ThreadpoolController is None or n_blocks < _MANY_BLOCKS:
         return contextlib.nullcontext()
-    if not _controller:
-        _controller.append(ThreadpoolController())
-    return _controller[0].limit(limits=1, user_api="blas")
+    return _blas_controller().limit(limits=1, user_api="blas")
+
+
+@functools.cache
+def _blas_controller():
+    """The process's threadpoolctl controller (its library lookup made once)."""
+    return ThreadpoolController()
 
 
 class _PatternNotClosedError(Exception):
