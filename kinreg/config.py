@@ -177,6 +177,10 @@ class BlockConfig:
     # Match the pairs again from the adjusted poses and adjust again, until the linked pairs no
     # longer change (loop closures across the accumulated drift), at most this often.
     max_relink_rounds: int = 2
+    # A scan frame and a sensor pose per quasi-static station, tied by the window bias (one error
+    # shared by all the scan's plane links: kinreg.estimate.frames); false: one pose per station,
+    # the window bias added to the trajectory's links and to the reported covariances.
+    scan_frames: bool = True
 
 
 class StaticDatum(enum.Enum):

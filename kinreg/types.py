@@ -161,7 +161,8 @@ class Plane:
     inliers in the plane (scan frame), ``area_m2`` its area, ``rms_m`` the RMS of the
     orthogonal residuals of the ``n_points`` full-resolution inliers. ``t_offset_s`` is when the
     plane was seen, relative to the scan's centre time: drift inside the window moves the plane by
-    the drift over that time (see :func:`kinreg.estimate.network.with_window_deformation`).
+    the drift over that time (see :func:`kinreg.estimate.drift.with_window_deformation`), and,
+    with ``t_slope_s_per_m``, tilts it.
     """
 
     scan_id: int
@@ -176,6 +177,9 @@ class Plane:
     n_points: int
     rms_m: float
     t_offset_s: float = 0.0  # mean time of the inliers minus the scan's centre time (0: static scan)
+    # how the inliers' time changes across the plane [s/m], along basis_uv: a plane swept over
+    # while walking is seen early at one end and late at the other, so a drift velocity tilts it
+    t_slope_s_per_m: tuple[float, float] = (0.0, 0.0)
 
     def cov_nd(self) -> FloatArray:
         """The (rank-3) 4x4 covariance of (nx, ny, nz, d)."""
@@ -251,6 +255,7 @@ class ObservationKind(enum.Enum):
     STATION = "station"  # a direct observation of one station's pose (static scans with sigmas)
     DRIFT = "drift"  # how the trajectory's drift velocity changes from one link to the next
     POINT = "point"  # a surveyed point on the pose interpolated between two stations (control points)
+    FRAME = "frame"  # a quasi-static scan's frame against its sensor pose (the window bias, kinreg.estimate.frames)
 
 
 @dataclass(frozen=True, eq=False)

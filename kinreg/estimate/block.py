@@ -321,7 +321,7 @@ def adjust_block(
         # direction it carries to the planes, which may not fix it (a corridor): the walks of the
         # accuracy matrix lost alternate links there and drifted by 10-20 mm.
         candidates = [t for t in tests if t.index not in protected
-                      and t.kind not in (ObservationKind.TRAJECTORY, ObservationKind.DRIFT)]
+                      and t.kind not in (ObservationKind.TRAJECTORY, ObservationKind.DRIFT, ObservationKind.FRAME)]
         worst = worst_outliers(candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
         if worst:
             for t in worst:

@@ -218,13 +218,13 @@ def tie_points(assignment: Assignment, stations: Sequence[Station], trajectories
 
 
 def control_observations(ties: Sequence[ControlTie], stations: Sequence[Station], rates: DriftRates,
-                         previous: BlockResult | None = None) -> list[RelativeObservation]:
+                         previous: BlockResult | None = None, window_bias: bool = True) -> list[RelativeObservation]:
     """The block's observations of the control points (see the module's docstring), their
     covariances at the ``previous`` adjustment's station rotations where given (else the
     initial ones)."""
     observations = []
     for tie in ties:
-        C = control_covariance(tie, stations, rates, previous)
+        C = control_covariance(tie, stations, rates, previous, window_bias)
         info = np.zeros((6, 6))
         info[:3, :3] = np.linalg.inv(C)
         observations.append(RelativeObservation(
@@ -234,13 +234,16 @@ def control_observations(ties: Sequence[ControlTie], stations: Sequence[Station]
 
 
 def control_covariance(tie: ControlTie, stations: Sequence[Station], rates: DriftRates,
-                       previous: BlockResult | None = None) -> FloatArray:
-    """The covariance (3, 3) [m^2] of a control observation (see the module's docstring)."""
+                       previous: BlockResult | None = None, window_bias: bool = True) -> FloatArray:
+    """The covariance (3, 3) [m^2] of a control observation (see the module's docstring); without
+    ``window_bias`` it observes the sensor pose, not the scan frame (:mod:`kinreg.estimate.frames`)."""
     k = tie.station
     T = previous.poses[k] if previous is not None else stations[k].T_obj_scan
     R = T.rotation_matrix
     J = R @ np.hstack([np.eye(3), -skew(tie.q_scan)])
-    trajectory = rates.covariance(abs(tie.dt_s), T) + window_bias_covariance(stations[k], T, rates)
+    trajectory = rates.covariance(abs(tie.dt_s), T)
+    if window_bias:
+        trajectory = trajectory + window_bias_covariance(stations[k], T, rates)
     return tie.cov_m2 + J @ trajectory @ J.T
 
 

@@ -22,6 +22,7 @@ from kinreg.estimate.control import (
     free_rotations,
 )
 from kinreg.estimate.drift import DriftRates
+from kinreg.estimate.frames import adjust_with_frames, window_gain
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
 from kinreg.estimate.reference import associate, tie_observations
@@ -162,7 +163,8 @@ def build_network(
             fixed[p[0]] = True
         datum.append(f"{len(parts)} disconnected part(s) each on its first station")
     return Network(tuple(stations), tuple(links), Datum(fixed, tuple(datum_obs), "; ".join(datum), tuple(ties),
-                                                        tuple(controls)))
+                                                        tuple(controls)),
+                   np.array([window_gain(p) for p in planes]).reshape(-1, 6, 6))
 
 
 def screen_control_points(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
@@ -197,9 +199,8 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
             if not held_elsewhere and len(free_rotations(others)[0]):
                 continue  # without it the rest would not hold the datum: it cannot be tested against them
             without = dataclasses.replace(network, datum=dataclasses.replace(network.datum, controls=others))
-            result = adjust_block(without.initial_poses, without.observations(rates, previous), without.datum.fixed,
-                                  plain, progress)
-            scores[k] = _leave_one_out(controls[k], result, network, rates)
+            result = adjust_network(without, rates, plain, progress, previous)
+            scores[k] = _leave_one_out(controls[k], result, network, rates, not config.scan_frames)
         worst = max(scores, key=lambda k: scores[k], default=None)
         if worst is None or not scores[worst] > critical:
             break
@@ -218,9 +219,10 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
     return dataclasses.replace(network, datum=datum)
 
 
-def _leave_one_out(tie: ControlTie, result: BlockResult, network: Network, rates: DriftRates) -> float:
+def _leave_one_out(tie: ControlTie, result: BlockResult, network: Network, rates: DriftRates,
+                   window_bias: bool) -> float:
     """The test statistic of control point ``tie`` against ``result`` (adjusted without it)."""
-    C = control_covariance(tie, network.stations, rates, result)
+    C = control_covariance(tie, network.stations, rates, result, window_bias)
     d = tie.predicted(result.poses) - tie.xyz
     # The prediction's covariance: the blend of the two stations' (an upper bound whatever their
     # correlation, which the block result does not keep: Var((1-s) a + s b) <= (1-s) Var a + s Var b).
@@ -239,6 +241,12 @@ def _predicted_covariance(k: int, q: np.ndarray, result: BlockResult) -> np.ndar
 def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
                    previous: BlockResult | None = None) -> BlockResult:
     """The block adjustment of ``network`` (:func:`~kinreg.estimate.block.adjust_block`), its
-    trajectory links weighted by ``rates`` and coupled through a ``previous`` adjustment."""
+    trajectory links weighted by ``rates`` and coupled through a ``previous`` adjustment; with
+    ``[block] scan_frames``, with a scan frame and a sensor pose per quasi-static station
+    (:mod:`kinreg.estimate.frames`)."""
+    if config.scan_frames:
+        return adjust_with_frames(network.stations, network.initial_poses,
+                                  network.observations(rates, previous, window_bias=False), network.datum.fixed, rates,
+                                  config, progress, network.window_gain, network.velocity_cov)
     return adjust_block(network.initial_poses, network.observations(rates, previous), network.datum.fixed, config,
                         progress)

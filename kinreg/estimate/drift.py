@@ -11,8 +11,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from kinreg.config import DriftConfig
-from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, skew
-from kinreg.types import BlockResult, ObservationKind, Plane, RelativeObservation, ScanKind, Station
+from kinreg.estimate.correction import DriftCorrection
+from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, rotvec_to_quat, skew
+from kinreg.types import BlockResult, ObservationKind, Plane, RelativeObservation, ScanKind, Station, Trajectory
 
 
 def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
@@ -98,62 +99,96 @@ def drift_observation(rates: DriftRates, link: int, dt_s: float,
 
 def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], result: BlockResult,
                     rates: DriftRates) -> tuple[list[tuple[Plane, ...]], float]:
-    """The planes of every quasi-static scan with the shear that the trajectory's attitude error
-    puts into a window where it is coupled (``rates.coupling``, GNSS/INS-like) taken out.
+    """The planes of every quasi-static scan with the drift inside its window taken out, by the
+    correction that the adjustment found, as far as it is known inside the window.
 
-    A scan is assembled with the trajectory's poses relative to its centre pose; where positions
-    are measured apart from the attitude, the relative step ``x(t) - x_c`` is turned into the scan
-    frame with the erroneous attitude, so a point seen ``tau`` from the centre is off by
-    ``R_c^T [phi]x (x(t) - x_c)`` (``phi``: the attitude correction, object axes). A plane seen
-    ``t_offset_s`` from the centre moves by that at its mean time (platform velocity from the
-    neighbouring stations): its offset, centroid and hull are moved back by ``kappa`` times it, and
-    the uncertainty of the adjusted attitude it is made with is added to its offset's variance.
-    On simulated GNSS/INS runs (0.4 deg attitude error, 0.4 m/s) that is 2-5 mm per plane, more
-    than the drift inside the window. Static scans and runs without coupling are returned as they are.
-    Returns the planes and the largest shift [m].
+    A scan is assembled with the trajectory's poses relative to its centre pose ``T_c``; a point
+    seen at ``t_c + tau`` belongs where the correction at that time puts it, so in the scan frame
+    it moves by ``T_c_adjusted^-1 C(t_c + tau) T_c`` (the identity at ``tau = 0``). Each plane is
+    moved by that map at its inliers' mean time (``t_offset_s``). The correction is
+    ``x' = R(r)(x - p) + p + delta`` (:class:`~kinreg.estimate.correction.DriftCorrection`: ``r``,
+    ``delta`` and the pivot ``p`` interpolated between the stations of a run); inside the window
+    it is taken as the best prediction the drift model allows:
+
+    - the rotation and the part of the shift that is not the centre's rotation about the moving
+      pivot change as the interpolated correction does, times the correlation of the drift
+      velocity over a station spacing (``exp(-spacing / correlation time)``: a smooth drift,
+      SLAM- or world-like, is interpolated; a drift that decorrelates from one station to the next
+      cannot be, and is not);
+    - the shift keeps the centre's rotation about the moving pivot, ``(R_c - I)(p - p_c)``, in the
+      share ``1 - coupling``: where the positions integrate the attitude error (SLAM) one rigid
+      correction moves the whole window; where they are measured apart from it (GNSS/INS) the
+      attitude error turns the trajectory's object-frame step and shears the window instead (a
+      plane seen 2 s from the centre at 0.5 m/s and 5 mrad is 5 mm off).
+
+    The scan's frame is otherwise the frame its planes share, so this error is common to all
+    links of a scan and no link residual shows it. Static scans and stations without a time are
+    returned as they are. Returns the planes and the largest shift of a plane's centroid [m].
     """
-    kappa = rates.coupling
-    if kappa <= 0.0:
-        return list(planes), 0.0
-    phi = quat_to_rotvec(result.poses.compose(result.poses_initial.inverse()).quat_wxyz)
-    R = result.poses.rotation_matrix
-    phi_cov = R @ result.cov_xi[:, 3:, 3:] @ np.transpose(R, (0, 2, 1))  # attitude, object axes
-    velocity = _platform_velocities(stations, result.poses_initial)
-    out, largest = [], 0.0
-    for k, scan_planes in enumerate(planes):
-        if stations[k].kind is not ScanKind.QUASI_STATIC or not np.all(np.isfinite(velocity[k])):
-            out.append(scan_planes)
+    out = list(planes)
+    largest = 0.0
+    timed = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s)]
+    for run in sorted({stations[k].run for k in timed}):
+        ks = sorted((k for k in timed if stations[k].run == run), key=lambda k: stations[k].t_s)
+        if len(ks) < 2:
             continue
-        moved = []
-        for p in scan_planes:
-            tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
-            step = velocity[k] * tau
-            shift = kappa * R[k].T @ np.cross(phi[k], step)
-            largest = max(largest, float(np.linalg.norm(shift)))
-            # The attitude it is made with is uncertain: d(shift) = -kappa R^T [step]x d(phi).
-            J = -kappa * p.normal @ R[k].T @ skew(step)
-            cov = p.cov_uvd.copy()
-            cov[2, 2] += float(J @ phi_cov[k] @ J)
-            moved.append(replace(p, d_m=float(p.d_m - p.normal @ shift), centroid_xyz=p.centroid_xyz - shift,
-                                 hull_xyz=p.hull_xyz - shift, cov_uvd=cov))
-        out.append(tuple(moved))
+        stamps = np.array([stations[k].t_s for k in ks])
+        spacing = float(np.median(np.diff(stamps)))
+        rho_pos, rho_rot = (float(np.exp(-spacing / c)) if c > 0.0 else 0.0 for c in rates.correlation_s)
+        initial, adjusted = result.poses_initial[ks], result.poses[ks]
+        correction = DriftCorrection.from_stations(stamps, initial, adjusted, Trajectory(stamps, initial))
+        for m, k in enumerate(ks):
+            if out[k]:
+                moved = []
+                for p in out[k]:
+                    plane = _deskewed(p, _WindowMap(correction, float(stamps[m]), initial[m], adjusted[m],
+                                                    rates.coupling, rho_pos, rho_rot))
+                    largest = max(largest, float(np.linalg.norm(plane.centroid_xyz - p.centroid_xyz)))
+                    moved.append(plane)
+                out[k] = tuple(moved)
     return out, largest
 
 
-def _platform_velocities(stations: Sequence[Station], poses: Pose) -> FloatArray:
-    """Per station: the platform's velocity at its centre time [m/s], from its neighbours in the
-    same run (central difference; one-sided at the ends; nan for static or lone stations)."""
-    velocity = np.full((len(stations), 3), np.nan)
-    seq = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC]
-    for m, k in enumerate(seq):
-        near = [seq[q] for q in (m - 1, m + 1) if 0 <= q < len(seq) and stations[seq[q]].run == stations[k].run]
-        if not near:
-            continue
-        a, b = (near[0], near[-1]) if len(near) == 2 else ((near[0], k) if near[0] < k else (k, near[0]))
-        dt = stations[b].t_s - stations[a].t_s
-        if dt > 0:
-            velocity[k] = (poses.t_xyz[b] - poses.t_xyz[a]) / dt
-    return velocity
+@dataclass(frozen=True, eq=False)
+class _WindowMap:
+    """The map of :func:`deskewed_planes` for one scan: scan-frame points seen ``tau`` from the
+    centre time ``t_s`` to where the correction puts them, in the adjusted scan frame."""
+
+    correction: DriftCorrection
+    t_s: float
+    initial: Pose
+    adjusted: Pose
+    coupling: float
+    rho_pos: float
+    rho_rot: float
+
+    def __call__(self, x: FloatArray, tau: FloatArray) -> FloatArray:
+        (r_c,), (delta_c,), (p_c,) = self.correction._at(np.array([self.t_s]))
+        rotvec, delta, pivot = self.correction._at(self.t_s + tau)
+        R_0 = Pose(rotvec_to_quat(r_c), np.zeros(3)).rotation_matrix
+        rigid = (pivot - p_c) @ (R_0 - np.eye(3)).T  # the centre's rotation about the moving pivot
+        delta = delta_c + (1.0 - self.coupling) * rigid + self.rho_pos * (delta - delta_c - rigid)
+        R_c = Pose(rotvec_to_quat(r_c + self.rho_rot * (rotvec - r_c)), np.zeros_like(delta)).rotation_matrix
+        y = x @ self.initial.rotation_matrix.T + self.initial.t_xyz
+        y = np.einsum("nij,nj->ni", R_c, y - pivot) + pivot + delta
+        return (y - self.adjusted.t_xyz) @ self.adjusted.rotation_matrix
+
+
+def _deskewed(p: Plane, mapped: _WindowMap) -> Plane:
+    """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and a metre along each
+    tangent at the time it was seen there (its time slope), which gives the tilt."""
+    tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
+    u, v = p.basis_uv
+    slope = np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
+    c, cu, cv = mapped(np.array([p.centroid_xyz, p.centroid_xyz + u, p.centroid_xyz + v]),
+                       tau + np.array([0.0, *slope]))
+    normal = np.cross(cu - c, cv - c)
+    normal /= np.linalg.norm(normal) * (1.0 if normal @ p.normal > 0.0 else -1.0)
+    u_new = cu - c - ((cu - c) @ normal) * normal
+    u_new /= np.linalg.norm(u_new)
+    return replace(p, normal=normal, d_m=float(normal @ c - (p.normal @ p.centroid_xyz - p.d_m)), centroid_xyz=c,
+                   hull_xyz=mapped(p.hull_xyz, np.full(len(p.hull_xyz), tau)),
+                   basis_uv=np.array([u_new, np.cross(normal, u_new)]))
 
 
 def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRates) -> np.ndarray:
@@ -173,10 +208,13 @@ def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRa
 
 
 def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
-                       band_m: float) -> np.ndarray:
-    """Per plane: the mean time of its points minus ``t_s`` [s]; the points of a plane are those
-    within ``band_m`` of it and inside its extent (``nan`` for a plane without such points)."""
+                       band_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per plane: the mean time of its points minus ``t_s`` [s], and the slope of their time
+    across the plane along its ``basis_uv`` [s/m] (least squares; (n, 2)); the points of a plane
+    are those within ``band_m`` of it and inside its extent (``nan`` for a plane without such
+    points)."""
     offsets = np.full(len(planes), np.nan)
+    slopes = np.full((len(planes), 2), np.nan)
     for k, plane in enumerate(planes):
         near = np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m
         local = points_xyz[near] - plane.centroid_xyz
@@ -186,8 +224,14 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             lo, hi = (hull @ axis).min(), (hull @ axis).max()
             inside &= (local @ axis >= lo) & (local @ axis <= hi)
         if inside.any():
-            offsets[k] = float(np.mean(stamps_s[near][inside])) - t_s
-    return offsets
+            t = stamps_s[near][inside]
+            offsets[k] = float(np.mean(t)) - t_s
+            st = local[inside] @ plane.basis_uv.T
+            st = st - st.mean(axis=0)
+            A = st.T @ st
+            if len(t) >= 3 and np.linalg.cond(A) < 1e8:
+                slopes[k] = np.linalg.solve(A, st.T @ (t - t.mean()))
+    return offsets, slopes
 
 
 def rms_time_offset(offsets: np.ndarray) -> float:
@@ -196,29 +240,86 @@ def rms_time_offset(offsets: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(finite)))) if len(finite) else float("nan")
 
 
-def with_window_deformation(planes: Sequence[Plane], T_obj_scan: Pose, rates: DriftRates) -> tuple[Plane, ...]:
+def plane_motion_jacobian(p: Plane, tau_s: float = 1.0, slope_s_per_m: FloatArray | None = None) -> FloatArray:
+    """The change (3, 6) of a plane's (tilt towards u, tilt towards v, offset at the origin)
+    (:class:`~kinreg.types.Plane`) when its points move by ``tau(x) (rho + phi x x)`` for a twist
+    ``(rho, phi)`` in the scan frame, with ``tau(x) = tau_s + slope . (x - c)`` along ``basis_uv``:
+    with ``tau = 1`` and no slope, a motion of the scan's frame; with the plane's time offset
+    and slope, what a drift velocity ``(rho, phi)`` does to a plane seen over the window.
+
+    The normal displacement is ``w(x) = tau(x) (n.rho + (x x n).phi)``; a tilt ``a`` towards u
+    moves a point ``s`` along u by ``-a s``, and the offset at the origin is
+    ``e_c + a (u.c) + b (v.c)`` (:func:`~kinreg.estimate.planes.plane_covariance`)."""
+    n, c = p.normal, p.centroid_xyz
+    g = np.zeros(2) if slope_s_per_m is None else np.asarray(slope_s_per_m, dtype=float)
+    w0 = np.concatenate([n, np.cross(c, n)])
+    rows = []
+    for axis, slope in zip(p.basis_uv, g, strict=True):
+        rows.append(-(slope * w0 + tau_s * np.concatenate([np.zeros(3), np.cross(axis, n)])))
+    J = np.zeros((3, 6))
+    J[0], J[1] = rows
+    J[2] = tau_s * w0 + (p.basis_uv[0] @ c) * J[0] + (p.basis_uv[1] @ c) * J[1]
+    return J
+
+
+def window_deformation_jacobian(p: Plane) -> FloatArray:
+    """:func:`plane_motion_jacobian` at the plane's own time offset and time slope (zero for a
+    plane without a time)."""
+    if not np.isfinite(p.t_offset_s):
+        return np.zeros((3, 6))
+    return plane_motion_jacobian(p, p.t_offset_s, np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float)))
+
+
+def with_window_deformation(planes: Sequence[Plane], T_obj_scan: Pose, rates: DriftRates,
+                            velocity_cov: FloatArray | None = None) -> tuple[Plane, ...]:
     """The planes with the drift inside the scan's window added to their covariances: a plane
-    seen ``t_offset_s`` from the centre time is moved by the trajectory's drift over that time
-    (position ``rate * |t_offset|`` along its normal, rotation ``rate * |t_offset|`` about its
-    tangents; the drift rates are per object axis). Each plane of a scan moves by its own time
-    offset, so the scan is deformed, not just displaced: on simulated runs the offsets of small
-    wall patches seen 2 s from the centre were off by 2 mm, which this predicts to 0.3 mm.
-    """
-    R = T_obj_scan.rotation_matrix
+    seen ``t_offset_s`` from the centre time is moved by the drift velocity times that time, and
+    a plane swept over while walking (``t_slope_s_per_m``) is tilted by it
+    (:func:`window_deformation_jacobian`). Each plane of a scan moves by its own times, so the
+    scan is deformed, not just displaced. The drift velocity's covariance (6x6, scan axes) is
+    ``velocity_cov`` where given (what is left once the planes are deskewed,
+    :func:`window_velocity_covariance`), else the drift rates'."""
+    cov_v = rates.covariance(1.0, T_obj_scan, floor=False) if velocity_cov is None else velocity_cov
     out = []
     for p in planes:
-        tau = abs(p.t_offset_s) if np.isfinite(p.t_offset_s) else 0.0
-        if tau == 0.0:
+        G = window_deformation_jacobian(p)
+        if not G.any():
             out.append(p)
             continue
-        n_obj = R @ p.normal
-        var_d = float(np.sum((n_obj * rates.pos_m_per_s) ** 2)) * tau**2
-        tangents = p.basis_uv @ R.T  # rows in object axes
-        # a rotation about the tangent direction orthogonal to u tilts the normal towards u
-        var_uv = [float(np.sum((np.cross(n_obj, t) * rates.rot_rad_per_s) ** 2)) * tau**2 for t in tangents]
-        cov = p.cov_uvd + np.diag([var_uv[0], var_uv[1], var_d])
-        out.append(replace(p, cov_uvd=cov))
+        out.append(replace(p, cov_uvd=p.cov_uvd + G @ cov_v @ G.T))
     return tuple(out)
+
+
+def window_velocity_covariance(stations: Sequence[Station], result: BlockResult, rates: DriftRates) -> FloatArray:
+    """Per station (n, 6, 6, scan axes): the covariance of the drift velocity inside its window
+    that :func:`deskewed_planes` leaves, when it deskews with ``result``: the part of the drift
+    velocity at the planes' times that the velocity at the centre does not predict (``1 - rho^2``
+    of the rates' spread, ``rho`` the correlation over the station's ``tau_s``, the RMS time offset
+    of its planes) plus the adjustment's own uncertainty of the velocity, the covariance of the
+    adjusted relative pose of the trajectory's links on either side over their length squared
+    (the mean of the two). Static stations and stations without trajectory links: the rates'."""
+    n = len(stations)
+    out = np.array([rates.covariance(1.0, s.T_obj_scan, floor=False) for s in stations]).reshape(n, 6, 6)
+    timed = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s)]
+    if len(timed) < 2:
+        return out
+    spacing = float(np.median(np.diff(sorted(stations[k].t_s for k in timed))))
+    posterior: dict[int, list[FloatArray]] = {}
+    for t in result.tests:
+        if t.kind is ObservationKind.TRAJECTORY and t.cov_adjusted is not None and t.j >= 0:
+            dt = abs(stations[t.j].t_s - stations[t.i].t_s)
+            if dt > 0:
+                for k in (t.i, t.j):
+                    posterior.setdefault(k, []).append(t.cov_adjusted / dt**2)
+    for k in timed:
+        if k not in posterior:
+            continue
+        # its planes are seen about tau_s from the centre: the drift velocity's correlation over that
+        lag = stations[k].tau_s if np.isfinite(stations[k].tau_s) else spacing / np.sqrt(12.0)
+        rho = np.repeat([float(np.exp(-lag / c)) if c > 0.0 else 0.0 for c in rates.correlation_s], 3)
+        left = np.sqrt(1.0 - rho**2)
+        out[k] = left[:, None] * out[k] * left[None, :] + np.mean(posterior[k], axis=0)
+    return out
 
 
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates,

@@ -123,6 +123,7 @@ def _dt(a: Station, b: Station) -> float:
 
 def block_observations(
     stations: Sequence[Station], links: Sequence[Link], rates: DriftRates, previous: BlockResult | None = None,
+    window_bias: bool = True,
 ) -> list[RelativeObservation]:
     """The block's observations: every usable link's plane-only information, and the trajectory's
     relative pose between consecutive quasi-static stations of the same run, once, weighted by the
@@ -132,7 +133,10 @@ def block_observations(
     ``(1 - kappa)`` times its step in its own scan frame plus ``kappa`` times its object-frame step
     turned into the adjusted scan frame (the block's own attitude of the first station, an
     unknown): a trajectory whose positions are measured apart from its attitude (GNSS/INS) then
-    no longer carries its attitude error into the links. ``previous`` is not used by the links."""
+    no longer carries its attitude error into the links. ``previous`` is not used by the links.
+    Without ``window_bias`` the scans' window bias is left out of the trajectory's links (the
+    block then carries it as the tie of each scan frame to its sensor pose,
+    :mod:`kinreg.estimate.frames`)."""
     observations = [
         RelativeObservation(ObservationKind.PLANES, link.scan_i, link.scan_j, link.T_i_j_planes,
                             link.info_planes, link.rank)
@@ -150,8 +154,10 @@ def block_observations(
         Z = sa.T_obj_scan.inverse().compose(sb.T_obj_scan)
         # With a correlated drift its velocity is an unknown of the link (drift_observation); the
         # link itself then keeps the floors only.
-        cov = (rates.covariance(0.0 if rates.state_space else dt, sa.T_obj_scan)
-               + window_bias_covariance(sa, sa.T_obj_scan, rates) + window_bias_covariance(sb, sa.T_obj_scan, rates))
+        cov = rates.covariance(0.0 if rates.state_space else dt, sa.T_obj_scan)
+        if window_bias:
+            cov = (cov + window_bias_covariance(sa, sa.T_obj_scan, rates)
+                   + window_bias_covariance(sb, sa.T_obj_scan, rates))
         observations.append(RelativeObservation(ObservationKind.TRAJECTORY, a, b, Z, np.linalg.inv(cov), 6,
                                                 dt_s=dt if rates.state_space else 0.0, coupling=rates.coupling,
                                                 step_obj=sb.T_obj_scan.t_xyz - sa.T_obj_scan.t_xyz))
@@ -186,18 +192,26 @@ class Network:
     stations: tuple[Station, ...]
     links: tuple[Link, ...]
     datum: Datum
+    # per station (n, 6, 6): how a drift velocity inside its window moves the frame its planes fix
+    # (kinreg.estimate.frames.window_gain)
+    window_gain: NDArray[np.float64] | None = None
+    # per station (n, 6, 6, scan axes): the covariance of the drift velocity inside its window that
+    # the deskewed planes leave (kinreg.estimate.drift.window_velocity_covariance); None: the rates'
+    velocity_cov: NDArray[np.float64] | None = None
 
     @property
     def initial_poses(self) -> Pose:
         return Pose.stack([s.T_obj_scan for s in self.stations])
 
-    def observations(self, rates: DriftRates, previous: BlockResult | None = None) -> list[RelativeObservation]:
+    def observations(self, rates: DriftRates, previous: BlockResult | None = None,
+                     window_bias: bool = True) -> list[RelativeObservation]:
         """The block's observations with the trajectory's links weighted by ``rates`` (and coupled
         through a ``previous`` adjustment, :func:`block_observations`), and the datum's; the
         control points' come last, in the order of ``datum.controls``
-        (:meth:`control_indices`)."""
-        return (block_observations(self.stations, self.links, rates, previous) + list(self.datum.observations)
-                + control_observations(self.datum.controls, self.stations, rates, previous))
+        (:meth:`control_indices`). ``window_bias``: see :func:`block_observations`."""
+        return (block_observations(self.stations, self.links, rates, previous, window_bias)
+                + list(self.datum.observations)
+                + control_observations(self.datum.controls, self.stations, rates, previous, window_bias))
 
     def control_indices(self, rates: DriftRates) -> range:
         """The positions of the control points' observations in :meth:`observations` with ``rates``

@@ -40,6 +40,7 @@ def planes_to_arrays(planes: Sequence[tuple[Plane, ...]]) -> Arrays:
         "n_points": np.array([p.n_points for p in flat], dtype=np.int64),
         "rms_m": _f([p.rms_m for p in flat]),
         "t_offset_s": _f([p.t_offset_s for p in flat]),
+        "t_slope_s_per_m": _f([p.t_slope_s_per_m for p in flat], (2,)),
     }
 
 
@@ -50,7 +51,8 @@ def planes_from_arrays(a: Mapping[str, np.ndarray]) -> list[tuple[Plane, ...]]:
         Plane(int(a["scan_id"][k]), int(a["plane_id"][k]), a["normal"][k].copy(), float(a["d_m"][k]),
               a["centroid_xyz"][k].copy(), a["basis_uv"][k].copy(), a["cov_uvd"][k].copy(),
               a["hull_xyz"][hull_at[k]:hull_at[k + 1]].copy(), float(a["area_m2"][k]),
-              int(a["n_points"][k]), float(a["rms_m"][k]), float(a["t_offset_s"][k]))
+              int(a["n_points"][k]), float(a["rms_m"][k]), float(a["t_offset_s"][k]),
+              (float(a["t_slope_s_per_m"][k, 0]), float(a["t_slope_s_per_m"][k, 1])))
         for k in range(len(a["scan_id"]))
     ]
     at = _offsets(a["scan_plane_counts"])

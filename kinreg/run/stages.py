@@ -30,6 +30,7 @@ from kinreg.estimate.drift import (
     estimate_drift_rates,
     plane_time_offsets,
     rms_time_offset,
+    window_velocity_covariance,
     with_window_bias,
     with_window_deformation,
 )
@@ -71,9 +72,12 @@ def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[St
     found = detect_planes(scan, config)
     tau = float("nan")
     if scan.stamps_s is not None:
-        offsets = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m)
-        found = tuple(dataclasses.replace(p, t_offset_s=float(t)) if np.isfinite(t) else p
-                      for p, t in zip(found, offsets, strict=True))
+        offsets, slopes = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found,
+                                             config.refit_distance_m)
+        found = tuple(dataclasses.replace(p, t_offset_s=float(t), t_slope_s_per_m=(float(g[0]), float(g[1])))
+                      if np.isfinite(t) and np.all(np.isfinite(g)) else
+                      (dataclasses.replace(p, t_offset_s=float(t)) if np.isfinite(t) else p)
+                      for p, t, g in zip(found, offsets, slopes, strict=True))
         tau = rms_time_offset(offsets)
     station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
                       scan.T_obj_scan, len(scan), tau)
@@ -222,13 +226,14 @@ def adjust_with_measured_drift(
         # (Where no plane moves by more than its offset's floor sigma, nothing is gained.)
         deskewed, shift = deskewed_planes(network.stations, planes, result, rates)
         sheared = shift > config.planes.min_sigma_d_m
+        velocity_cov = window_velocity_covariance(network.stations, result, rates) if sheared else None
         links = link_stations(network.stations, deskewed if sheared else planes, config.matching, config.drift,
                               config.pairwise, progress, static, executor, rates, adjusted=result,
-                              previous=() if faster or sheared else network.links)
+                              previous=() if faster or sheared else network.links, velocity_cov=velocity_cov)
         linked_with = rates if faster else linked_with
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
-        network = network.with_links(links)
+        network = replace(network.with_links(links), velocity_cov=velocity_cov)
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
         rates = replace(estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
                                              measure_correlation=False), correlation_s=correlation)
@@ -239,7 +244,9 @@ def adjust_with_measured_drift(
     network = screen_control_points(network, rates, config.block, progress, previous=result)
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     _warn_trajectory_misfits(result, config.block.alpha)
-    return AdjustedNetwork(network, with_window_bias(result, network.stations, rates), rates)
+    if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
+        result = with_window_bias(result, network.stations, rates)
+    return AdjustedNetwork(network, result, rates)
 
 
 def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
@@ -297,6 +304,7 @@ def link_stations(
     adjusted: BlockResult | None = None,
     previous: Sequence[Link] = (),
     loops: bool = True,
+    velocity_cov: np.ndarray | None = None,
 ) -> list[Link]:
     """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
     batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
@@ -324,7 +332,8 @@ def link_stations(
     kept = _unmoved_links(previous, pairs, initial, stations, matching) if adjusted is not None else {}
     todo = [pair for pair in pairs if pair not in kept]
     # Once per station, not once per pair: matching does not look at the covariances.
-    planes = [with_window_deformation(p, s.T_obj_scan, rates) for s, p in zip(stations, planes, strict=True)]
+    planes = [with_window_deformation(p, s.T_obj_scan, rates, None if velocity_cov is None else velocity_cov[k])
+              for k, (s, p) in enumerate(zip(stations, planes, strict=True))]
     configs = (matching, drift, pairwise, static)
     batches = [todo[k:k + _PAIRS_PER_TASK] for k in range(0, len(todo), _PAIRS_PER_TASK)]
     progress.start("link", total=len(batches), unit="batches")
