@@ -108,12 +108,16 @@ def build_network(
     ``[static] sigma_*``), reference planes (a tie plane per detected plane on one), or else the
     first station. Control points (``controls``) join any of these; alone, three or more (not on
     one line) are the datum, and the rotations that one or two leave free are held at the first
-    station's. A part of the network that no link ties to the datum is refused, or (``[block]
-    disconnected = "fix_each"``) held on its own first station. Raises :class:`ConfigError` when
+    station's. A static scan with control targets is held by its targets, not by ``static``. A
+    part of the network that no link ties to the datum is refused, or (``[block] disconnected =
+    "fix_each"``) held on its own first station. Raises :class:`ConfigError` when
     the reference planes tie nothing or leave a datum direction free, :class:`EstimationError`
     when the network falls apart."""
     poses_initial = Pose.stack([s.T_obj_scan for s in stations])
     is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
+    # A static scan with control targets is held by them (its E57 pose is only the start).
+    targeted = sorted({t.station for t in controls if t.target})
+    is_static[targeted] = False
     fixed = np.zeros(len(stations), dtype=bool)
     datum_obs: list[RelativeObservation] = []
     ties: list[Tie] = []
@@ -141,7 +145,10 @@ def build_network(
             datum_obs.append(first_station_rotation(axes, 0, stations[0].T_obj_scan,
                                                     config.control.free_rotation_sigma_rad))
             fixes += f"; the first station's rotation about {'every axis' if len(axes) == 3 else 'that line'}"
-        datum.append(f"{len(controls)} control point(s) (fixing {fixes})")
+        n_targets = sum(t.target for t in controls)
+        on = (f", {n_targets} of them targets in static scan(s) {', '.join(stations[k].name for k in targeted)}"
+              if n_targets else "")
+        datum.append(f"{len(controls)} control point(s){on} (fixing {fixes})")
     if not datum:
         fixed[0] = True
         datum.append("first station")
@@ -205,8 +212,10 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
             break
         name = controls[worst].name
         normalised = float(np.sqrt(scores[worst] / 3.0))
-        log.warning("control point %s rejected: it does not fit the network and the other control points (normalised "
-                    "residual %.1f against its sigma)", name, normalised)
+        log.warning("control point %s%s rejected: it does not fit the network and the other control points "
+                    "(normalised residual %.1f against its sigma)", name,
+                    f" (target in static scan {network.stations[controls[worst].station].name})"
+                    if controls[worst].target else "", normalised)
         rejected.append((name, normalised))
         network = dataclasses.replace(network, datum=dataclasses.replace(
             network.datum, controls=controls[:worst] + controls[worst + 1:]))
