@@ -216,3 +216,18 @@ def test_simulated_run_with_static_targets_as_the_only_datum(tmp_path):
     truth = read_trajectory(sample / "truth_trajectory.txt").pose_at(t).t_xyz
     err = np.column_stack([rows["x"][quasi], rows["y"][quasi], rows["z"][quasi]]) - truth
     assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.01
+
+
+def test_report_tables_mark_static_targets():
+    from kinreg.report.control import CONTROL_POINTS_HEADER, control_html, format_control_points_csv
+
+    row = {"name": "T1", "role": "control", "kind": "static target", "scan": "static_00", "t": float("nan"),
+           "x": 1.0, "y": 2.0, "z": 3.0, "sigma_mm": 3.0, "dx_mm": 1.0, "dy_mm": 0.0, "dz_mm": 0.0,
+           "horizontal_mm": 1.0, "vertical_mm": 0.0, "d3d_mm": 1.0, "normalised": 0.3, "decision": "accepted",
+           "input_d3d_mm": 20.0}
+    report = {"control": {"n": 1, "rows": [row], "rejected": [], "left_out": []}}
+    lines = format_control_points_csv(report).splitlines()
+    assert CONTROL_POINTS_HEADER[-2:] == ("kind", "scan")
+    assert lines[1].startswith("T1,control,,") and lines[1].endswith(",static target,static_00")
+    html = control_html(report)
+    assert "static target static_00" in html and "the target on its adjusted static scan" in html

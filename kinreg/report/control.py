@@ -235,8 +235,11 @@ def control_html(report: dict[str, Any]) -> str:
     control = report.get("control")
     if isinstance(control, dict):
         rejected = control.get("rejected") or []
-        text = (f"{control.get('n', 0)} control points; corrected trajectory minus surveyed [mm]; normalised "
-                "residual \u221a(T/dof) of its observation and the data-snooping decision"
+        targets = any(r.get("kind") == "static target" for r in control.get("rows") or [])
+        text = (f"{control.get('n', 0)} control points; corrected trajectory "
+                + ("(for a static target: the target on its adjusted static scan) " if targets else "")
+                + "minus surveyed [mm]; normalised residual \u221a(T/dof) of its observation and the data-snooping "
+                "decision"
                 + (f"; rejected: {', '.join(rejected)}" if rejected else ""))
         parts.append(_tag("h3", "Control points") + _tag("p", _esc(text))
                      + table(control.get("rows") or [], ("normalised", "decision")))
