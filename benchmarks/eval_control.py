@@ -24,7 +24,9 @@ poses, must hold the network), and four targets per scan on the walls and ceilin
 (survey 3 mm, the scan's own measurement 2 mm per axis = ``[control] target_sigma_mm``):
 
 - ``t3x4``: the 12 targets of all three scans;
-- ``t1x4``: the 4 targets of the first scan only (the E57 file then holds that scan alone);
+- ``t1x4``: the 4 targets of the second scan only, the one in a room (the E57 file then holds that
+  scan alone; the first scan, in the corridor, sees no plane across the corridor, so alone it
+  leaves the translation along it to nothing: build_network warns);
 - ``wrong``: ``t3x4`` with one target moved by +5 cm in x: is it rejected and named?
 
 Reported as above, plus the static stations' position errors and error/sigma, and the check
@@ -149,6 +151,7 @@ def evaluate_targets(seed: int, work: Path) -> dict:
     from eval_accuracy import scenario_config
 
     from kinreg.config import KinregConfig
+    from kinreg.errors import KinregError
     from kinreg.io.trajectory import read_trajectory
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation.files import control_csv, static_targets_csv, write_run, write_static_e57
@@ -162,7 +165,7 @@ def evaluate_targets(seed: int, work: Path) -> dict:
     truth = read_trajectory(data / "truth_trajectory.txt")
     misregistered = run.static_scans_misregistered(0.02, 0.1)
     write_static_e57(work / "static_all.e57", misregistered)
-    write_static_e57(work / "static_first.e57", misregistered[:1])
+    write_static_e57(work / "static_room.e57", misregistered[1:2])
     check = work / "check.csv"
     check.write_text(control_csv(run, noise=False))  # every stand-still: the corrected trajectory's own error
     targets = [t.name for t in run.static_targets()]
@@ -170,12 +173,17 @@ def evaluate_targets(seed: int, work: Path) -> dict:
     for label in TARGET_CASES:
         moved = {targets[5]: (0.05, 0.0, 0.0)} if label == "wrong" else None
         control = work / f"targets_{label}.csv"
-        control.write_text(static_targets_csv(run, moved=moved, scans=[0] if label == "t1x4" else None))
-        static = work / ("static_first.e57" if label == "t1x4" else "static_all.e57")
+        control.write_text(static_targets_csv(run, moved=moved, scans=[1] if label == "t1x4" else None))
+        static = work / ("static_room.e57" if label == "t1x4" else "static_all.e57")
         t0 = time.perf_counter()
         out = work / label
-        process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz", static=static, control=control,
-                              check=check), out, KinregConfig(), overwrite=True)
+        try:
+            process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz", static=static, control=control,
+                                  check=check), out, KinregConfig(), overwrite=True)
+        except KinregError as e:  # a failed case is a result too
+            result[label] = {"failed": str(e), "wall_s": time.perf_counter() - t0}
+            print(f"seed {seed} {label}: failed: {e}", flush=True)
+            continue
         report = json.loads((out / "report.json").read_text())
         result[label] = {
             "moved": moved, "datum": report["adjustment"]["datum"],
@@ -203,7 +211,11 @@ def summary(results: list[dict]) -> dict:
     out = {}
     labels = TARGET_CASES if results and "t3x4" in results[0] else ("n3", "n4", "n6", "wrong")
     for label in labels:
-        runs = [r[label] for r in results]
+        runs = [r[label] for r in results if "failed" not in r[label]]
+        failed = [f"seed {r['seed']}: {r[label]['failed']}" for r in results if "failed" in r[label]]
+        if not runs:
+            out[label] = {"failed": failed}
+            continue
         z = np.concatenate([np.array(r["stations"]["z"]) for r in runs])
         check = np.array([r["check_mm"]["corrected"]["rms"] for r in runs])
         out[label] = {
@@ -217,6 +229,8 @@ def summary(results: list[dict]) -> dict:
             "moved": [list((r["moved"] or {}).keys()) for r in runs],
             "loa": [r["loa"] for r in runs],
         }
+        if failed:
+            out[label]["failed"] = failed
         if "static" in runs[0]:
             zs = np.concatenate([np.array(r["static"]["z"]) for r in runs])
             out[label].update({

@@ -231,3 +231,28 @@ def test_report_tables_mark_static_targets():
     assert lines[1].startswith("T1,control,,") and lines[1].endswith(",static target,static_00")
     html = control_html(report)
     assert "static target static_00" in html and "the target on its adjusted static scan" in html
+
+
+def _link(i: int, j: int, info_diag) -> object:
+    from kinreg.types import Link, LinkStatus
+
+    eye = Pose.identity()
+    return Link(i, j, LinkStatus.OK, eye, np.eye(6), eye, eye, np.diag(info_diag), int(np.count_nonzero(info_diag)),
+                np.ones(6), 2, 1.0, 10, True, (), (), 1.0, 6.0)
+
+
+def test_a_static_scan_whose_links_leave_a_direction_free_is_named():
+    """A static scan (index 2) whose links see no plane across the x axis (a corridor): the
+    translation along x is named; with a link that sees one, nothing is."""
+    from kinreg.estimate.datum import free_static_directions
+
+    stations = [Station(k, f"qs_{k}", ScanKind.QUASI_STATIC, float(k), k - 1.0, k + 1.0, Pose.identity(), 100)
+                for k in range(2)] + [_static(2, Pose.identity())]
+    corridor = [0.0, 1e6, 1e6, 1e9, 1e9, 1e9]
+    assert free_static_directions(stations, [_link(0, 2, corridor), _link(2, 1, corridor)], [2]) == [
+        "translation along x"]
+    across = [1e6, 0.0, 1e6, 1e9, 1e9, 1e9]
+    assert free_static_directions(stations, [_link(0, 2, corridor), _link(1, 2, across)], [2]) == []
+    assert free_static_directions(stations, [_link(0, 1, across)], [2]) == [
+        "translation along x", "translation along y", "translation along z", "rotation about x", "rotation about y",
+        "rotation about z"]

@@ -31,6 +31,7 @@ from kinreg.progress import Progress
 from kinreg.types import (
     BlockResult,
     Link,
+    LinkStatus,
     ObservationKind,
     Plane,
     RelativeObservation,
@@ -79,6 +80,28 @@ def take_out_jumps(
 def _axis_name(v: np.ndarray) -> str:
     k = int(np.argmax(np.abs(v)))
     return "xyz"[k] if abs(v[k]) > 0.99 else "(" + ", ".join(f"{c:.2f}" for c in v) + ")"
+
+
+def free_static_directions(stations: Sequence[Station], links: Sequence[Link], holding: Sequence[int],
+                           sigma_m: float = 0.05, sigma_deg: float = 0.05) -> list[str]:
+    """The directions, in words, that the plane links between the static stations ``holding`` (they
+    hold the datum) and all other stations leave nearly free: where their summed information
+    (object axes, each link's turned by its second station's rotation) is below ``1 / sigma^2`` for
+    a translation or a rotation. A static scan in a corridor sees no plane across it: alone, it
+    leaves the translation along the corridor to nothing."""
+    held = set(holding)
+    info = np.zeros((6, 6))
+    for link in links:
+        if link.status is not LinkStatus.OK or link.rank == 0 or (link.scan_i in held) == (link.scan_j in held):
+            continue
+        B = np.kron(np.eye(2), stations[link.scan_j].T_obj_scan.rotation_matrix)
+        info += B @ link.info_planes @ B.T
+    words = []
+    for block, floor, what in ((slice(0, 3), sigma_m**-2, "translation along"),
+                               (slice(3, 6), np.radians(sigma_deg) ** -2, "rotation about")):
+        w, V = np.linalg.eigh(0.5 * (info[block, block] + info[block, block].T))
+        words += [f"{what} {_axis_name(V[:, k])}" for k in range(3) if w[k] < floor]
+    return words
 
 
 def _check_reference_datum(ties: list[Tie], references: ReferencePlanes) -> None:
@@ -149,6 +172,16 @@ def build_network(
         on = (f", {n_targets} of them targets in static scan(s) {', '.join(stations[k].name for k in targeted)}"
               if n_targets else "")
         datum.append(f"{len(controls)} control point(s){on} (fixing {fixes})")
+        if n_targets == len(controls) and references is None:
+            # The targets hold their static scans; the rest of the network hangs on those scans' links.
+            holding = targeted + [int(k) for k in np.flatnonzero(is_static)]
+            free = free_static_directions(stations, links, holding)
+            if free:
+                log.warning("the static scans that hold the datum (%s) are linked to the other scans by planes that "
+                            "leave the %s nearly free (sigma above 5 cm or 0.05 deg): the stations' sigmas show "
+                            "it; add targets on a static scan that sees planes across it, or stand-still control "
+                            "points", ", ".join(stations[k].name for k in holding), " and ".join(free))
+                datum.append(f"{' and '.join(free)} nearly free (the static scans' links)")
     if not datum:
         fixed[0] = True
         datum.append("first station")
