@@ -140,6 +140,8 @@ def static_target(point: ControlPoint, static_scans: Sequence[str] | None, sourc
     ``static_scans`` (the static E57 file's scan names, in file order; ``None``: no ``--static``
     given), or else its 0-based position there. Raises :class:`InputError` naming the file and
     the row when there are no static scans or no such scan."""
+    if point.scan_xyz is None:
+        raise ValueError(f"point {point.name} is not a target in a static scan")
     where = f"line {point.line}: {what} target {point.name}"
     if static_scans is None:
         raise InputError(f"{where} names static scan {point.station!r}, but no static scans are given (--static)",
@@ -152,7 +154,6 @@ def static_target(point: ControlPoint, static_scans: Sequence[str] | None, sourc
         listed = ", ".join(static_scans[:8]) + (", ..." if len(static_scans) > 8 else "")
         raise InputError(f"{where}: no static scan {point.station!r} (the static scans are {listed}, or their "
                          f"positions 0-{len(static_scans) - 1})", source)
-    assert point.scan_xyz is not None
     return StaticTarget(point.name, k, static_scans[k], point.scan_xyz, point.xyz, point.sigma_m)
 
 
