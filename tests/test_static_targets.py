@@ -256,3 +256,34 @@ def test_a_static_scan_whose_links_leave_a_direction_free_is_named():
     assert free_static_directions(stations, [_link(0, 1, across)], [2]) == [
         "translation along x", "translation along y", "translation along z", "rotation about x", "rotation about y",
         "rotation about z"]
+
+
+def test_with_targets_no_static_scan_is_held_at_its_e57_pose():
+    """Two static scans, targets on the first only, [static] datum = fixed: neither is fixed (the
+    targets are the datum; the second joins through its link), and the datum says so; with
+    "observed" the second is observed. One target alone leaves the rotations to the first station."""
+    import dataclasses
+
+    from kinreg.config import StaticDatum
+    from kinreg.types import ObservationKind
+
+    rng = np.random.default_rng(4)
+    T_true, T_file, true_xyz = _scene(rng, 4)
+    stations = [_static(0, T_file), _static(1, T_file.compose(Pose(np.array([1.0, 0, 0, 0]), np.array([5.0, 0, 0]))))]
+    text = _targets_csv(true_xyz, T_true.inverse().apply(true_xyz), 3.0)
+    assignment = assign_points(parse_control_points(text, "t.csv"), [], ControlConfig(), static_scans=["a", "b"])
+    ties = target_ties(assignment.targets, stations, ControlConfig())
+    link = _link(0, 1, [1e6] * 3 + [1e9] * 3)
+    config = KinregConfig()
+    network = build_network(stations, [(), ()], [link], None, StaticConfig(), config, ties)
+    assert not network.datum.fixed.any() and not network.datum.observations
+    assert "static scans without targets not fixed" in network.datum.description
+    observed = build_network(stations, [(), ()], [link], None, StaticConfig(datum=StaticDatum.OBSERVED), config, ties)
+    assert [(o.kind, o.i) for o in observed.datum.observations] == [(ObservationKind.STATION, 1)]
+    one = build_network(stations, [(), ()], [link], None, StaticConfig(), config, ties[:1])
+    assert [(o.kind, o.i, o.rank) for o in one.datum.observations] == [(ObservationKind.STATION, 0, 3)]
+    assert "fixing translations; the first station's rotation about every axis" in one.datum.description
+    from kinreg.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="target_sigma_mm"):
+        dataclasses.replace(config.control, target_sigma_mm=-1.0)

@@ -131,20 +131,29 @@ def build_network(
     ``[static] sigma_*``), reference planes (a tie plane per detected plane on one), or else the
     first station. Control points (``controls``) join any of these; alone, three or more (not on
     one line) are the datum, and the rotations that one or two leave free are held at the first
-    station's. A static scan with control targets is held by its targets, not by ``static``. A
-    part of the network that no link ties to the datum is refused, or (``[block] disconnected =
-    "fix_each"``) held on its own first station. Raises :class:`ConfigError` when
-    the reference planes tie nothing or leave a datum direction free, :class:`EstimationError`
-    when the network falls apart."""
+    station's. A static scan with control targets is held by its targets, not by ``static``; with
+    targets, ``static.datum = "fixed"`` holds no static scan (``"observed"`` still observes those
+    without targets). A part of the network that no link ties to the datum is refused, or
+    (``[block] disconnected = "fix_each"``) held on its own first station. Raises
+    :class:`ConfigError` when the reference planes tie nothing or leave a datum direction free,
+    :class:`EstimationError` when the network falls apart."""
     poses_initial = Pose.stack([s.T_obj_scan for s in stations])
     is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
-    # A static scan with control targets is held by them (its E57 pose is only the start).
-    targeted = sorted({t.station for t in controls if t.target})
-    is_static[targeted] = False
     fixed = np.zeros(len(stations), dtype=bool)
     datum_obs: list[RelativeObservation] = []
     ties: list[Tie] = []
-    datum = []
+    datum: list[str] = []
+    # A static scan with control targets is held by them (its E57 pose is only the start). With
+    # targets, no static scan is held fixed at its E57 pose: the targets are the datum, and a scan
+    # fixed where its registration put it would compete with the survey (a scan 2 cm off had good
+    # targets and stand-still points rejected in its place); "observed" still observes the others.
+    targeted = sorted({t.station for t in controls if t.target})
+    unfixed = ""  # said after the datum (it is none)
+    if targeted and static is not None and static.datum is StaticDatum.FIXED:
+        if is_static.sum() > len(targeted):
+            unfixed = "static scans without targets not fixed (the targets hold the datum)"
+        is_static[:] = False
+    is_static[targeted] = False
     if static is not None and is_static.any():
         if static.datum is StaticDatum.FIXED:
             fixed |= is_static
@@ -182,6 +191,8 @@ def build_network(
                             "it; add targets on a static scan that sees planes across it, or stand-still control "
                             "points", ", ".join(stations[k].name for k in holding), " and ".join(free))
                 datum.append(f"{' and '.join(free)} nearly free (the static scans' links)")
+        if unfixed:
+            datum.append(unfixed)
     if not datum:
         fixed[0] = True
         datum.append("first station")
