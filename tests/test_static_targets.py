@@ -260,8 +260,9 @@ def test_a_static_scan_whose_links_leave_a_direction_free_is_named():
 
 def test_with_targets_no_static_scan_is_held_at_its_e57_pose():
     """Two static scans, targets on the first only, [static] datum = fixed: neither is fixed (the
-    targets are the datum; the second joins through its link), and the datum says so; with
-    "observed" the second is observed. One target alone leaves the rotations to the first station."""
+    targets are the datum; the second joins through its link, its E57 pose observed with the
+    static prior's 0.2 m), and the datum says so; with "observed" the second is observed with
+    [static] sigma_mm. One target alone leaves the rotations to the first station."""
     import dataclasses
 
     from kinreg.config import StaticDatum
@@ -276,12 +277,16 @@ def test_with_targets_no_static_scan_is_held_at_its_e57_pose():
     link = _link(0, 1, [1e6] * 3 + [1e9] * 3)
     config = KinregConfig()
     network = build_network(stations, [(), ()], [link], None, StaticConfig(), config, ties)
-    assert not network.datum.fixed.any() and not network.datum.observations
+    assert not network.datum.fixed.any()
+    (prior,) = network.datum.observations  # the E57 pose, weakly: for what the planes leave free
+    assert (prior.kind, prior.i) == (ObservationKind.STATION, 1) and prior.info[0, 0] == pytest.approx(1 / 0.2**2)
     assert "static scans without targets not fixed" in network.datum.description
     observed = build_network(stations, [(), ()], [link], None, StaticConfig(datum=StaticDatum.OBSERVED), config, ties)
-    assert [(o.kind, o.i) for o in observed.datum.observations] == [(ObservationKind.STATION, 1)]
+    (held,) = observed.datum.observations
+    assert (held.kind, held.i) == (ObservationKind.STATION, 1) and held.info[0, 0] == pytest.approx(1 / 0.002**2)
     one = build_network(stations, [(), ()], [link], None, StaticConfig(), config, ties[:1])
-    assert [(o.kind, o.i, o.rank) for o in one.datum.observations] == [(ObservationKind.STATION, 0, 3)]
+    assert [(o.kind, o.i, o.rank) for o in one.datum.observations] == [(ObservationKind.STATION, 1, 6),
+                                                                        (ObservationKind.STATION, 0, 3)]
     assert "fixing translations; the first station's rotation about every axis" in one.datum.description
     from kinreg.errors import ConfigError
 

@@ -132,11 +132,12 @@ def build_network(
     first station. Control points (``controls``) join any of these; alone, three or more (not on
     one line) are the datum, and the rotations that one or two leave free are held at the first
     station's. A static scan with control targets is held by its targets, not by ``static``; with
-    targets, ``static.datum = "fixed"`` holds no static scan (``"observed"`` still observes those
-    without targets). A part of the network that no link ties to the datum is refused, or
-    (``[block] disconnected = "fix_each"``) held on its own first station. Raises
-    :class:`ConfigError` when the reference planes tie nothing or leave a datum direction free,
-    :class:`EstimationError` when the network falls apart."""
+    targets, ``static.datum = "fixed"`` holds no static scan: those without targets keep their
+    pose as an observation with ``static.prior_sigma_*`` (``"observed"``: ``static.sigma_*``). A
+    part of the network that no link ties to the datum is refused, or (``[block] disconnected =
+    "fix_each"``) held on its own first station. Raises :class:`ConfigError` when the reference
+    planes tie nothing or leave a datum direction free, :class:`EstimationError` when the network
+    falls apart."""
     poses_initial = Pose.stack([s.T_obj_scan for s in stations])
     is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
     fixed = np.zeros(len(stations), dtype=bool)
@@ -146,14 +147,19 @@ def build_network(
     # A static scan with control targets is held by them (its E57 pose is only the start). With
     # targets, no static scan is held fixed at its E57 pose: the targets are the datum, and a scan
     # fixed where its registration put it would compete with the survey (a scan 2 cm off had good
-    # targets and stand-still points rejected in its place); "observed" still observes the others.
+    # targets and stand-still points rejected in its place). The others keep their E57 pose as a
+    # weak observation (the static prior, [static] prior_sigma_*), for the directions their planes
+    # leave free (a scan in a corridor floated 2 m along it without); "observed" observes them.
     targeted = sorted({t.station for t in controls if t.target})
-    unfixed = ""  # said after the datum (it is none)
-    if targeted and static is not None and static.datum is StaticDatum.FIXED:
-        if is_static.sum() > len(targeted):
-            unfixed = "static scans without targets not fixed (the targets hold the datum)"
-        is_static[:] = False
     is_static[targeted] = False
+    unfixed = ""  # said after the datum (it is none)
+    if targeted and static is not None and static.datum is StaticDatum.FIXED and is_static.any():
+        unfixed = (f"static scans without targets not fixed (held by their planes, their E57 poses observed with "
+                   f"{static.prior_sigma_m:g} m / {static.prior_sigma_deg:g} deg)")
+        prior_sigma = pose_sigmas(static.prior_sigma_m, np.radians(static.prior_sigma_deg))
+        datum_obs += [RelativeObservation(ObservationKind.STATION, int(k), -1, stations[int(k)].T_obj_scan,
+                                          np.diag(1.0 / prior_sigma**2), 6) for k in np.flatnonzero(is_static)]
+        is_static[:] = False
     if static is not None and is_static.any():
         if static.datum is StaticDatum.FIXED:
             fixed |= is_static
