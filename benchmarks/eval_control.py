@@ -16,6 +16,22 @@ absolute station position errors against the truth (no fit), the error/sigma per
 seeds in the summary), the check differences (RMS, max) of the corrected and the input trajectory.
 
 Usage: python benchmarks/eval_control.py [--seeds 1 2 3 4 5 6] [--out benchmarks/control.json]
+
+``--scenario static-targets``: targets in static scans as the only datum. The same walk (8
+stand-stills, all of them check points with their true coordinates), the scenario's three static
+scans written with poses 2 cm and 0.1 deg off (a registration error: the targets, not the E57
+poses, must hold the network), and four targets per scan on the walls and ceiling around it
+(survey 3 mm, the scan's own measurement 2 mm per axis = ``[control] target_sigma_mm``):
+
+- ``t3x4``: the 12 targets of all three scans;
+- ``t1x4``: the 4 targets of the second scan only, the one in a room (the E57 file then holds that
+  scan alone; the first scan, in the corridor, sees no plane across the corridor, so alone it
+  leaves the translation along it to nothing: build_network warns);
+- ``wrong``: ``t3x4`` with one target moved by +5 cm in x: is it rejected and named?
+
+Reported as above, plus the static stations' position errors and error/sigma, and the check
+points (stand-stills) before and after. ``--summarise A.json B.json ...`` pools the results of
+earlier runs (e.g. seeds run in parallel) and prints the summary.
 """
 
 from __future__ import annotations
@@ -116,10 +132,90 @@ def evaluate(seed: int, work: Path) -> dict:
     return result
 
 
+def static_errors(out: Path, scans) -> dict:
+    """The static stations' adjusted positions against their true poses (``scans``, file order)."""
+    with open(out / "stations.csv") as f:
+        rows = [r for r in csv.DictReader(f) if not r["t"]]
+    truth = {s.name: s.T_obj_scan.t_xyz for s in scans}
+    e = np.array([[float(r[k]) for k in "xyz"] for r in rows]) - np.array([truth[r["station"]] for r in rows])
+    sigma = np.array([[float(r[k]) for k in ("sx_mm", "sy_mm", "sz_mm")] for r in rows])
+    e = e * 1000.0
+    return {"names": [r["station"] for r in rows], "error_mm": e.tolist(), "sigma_mm": sigma.tolist(),
+            "rms_mm": float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), "z": (e / sigma).tolist()}
+
+
+TARGET_CASES = ("t3x4", "t1x4", "wrong")
+
+
+def evaluate_targets(seed: int, work: Path) -> dict:
+    from eval_accuracy import scenario_config
+
+    from kinreg.config import KinregConfig
+    from kinreg.errors import KinregError
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.run.pipeline import ProcessInputs, process
+    from kinreg.simulation.files import control_csv, static_targets_csv, write_run, write_static_e57
+    from kinreg.simulation.run import simulate_run
+
+    cfg = scenario_config("sample", seed=seed)
+    cfg = dataclasses.replace(cfg, walk=dataclasses.replace(cfg.walk, stand_stills=N_STAND_STILLS))
+    run = simulate_run(cfg)
+    data = work / "data"
+    write_run(run, data)
+    truth = read_trajectory(data / "truth_trajectory.txt")
+    misregistered = run.static_scans_misregistered(0.02, 0.1)
+    write_static_e57(work / "static_all.e57", misregistered)
+    write_static_e57(work / "static_room.e57", misregistered[1:2])
+    check = work / "check.csv"
+    check.write_text(control_csv(run, noise=False))  # every stand-still: the corrected trajectory's own error
+    targets = [t.name for t in run.static_targets()]
+    result: dict = {"seed": seed, "targets": targets}
+    for label in TARGET_CASES:
+        moved = {targets[5]: (0.05, 0.0, 0.0)} if label == "wrong" else None
+        control = work / f"targets_{label}.csv"
+        control.write_text(static_targets_csv(run, moved=moved, scans=[1] if label == "t1x4" else None))
+        static = work / ("static_room.e57" if label == "t1x4" else "static_all.e57")
+        t0 = time.perf_counter()
+        out = work / label
+        try:
+            process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz", static=static, control=control,
+                                  check=check), out, KinregConfig(), overwrite=True)
+        except KinregError as e:  # a failed case is a result too
+            result[label] = {"failed": str(e), "wall_s": time.perf_counter() - t0}
+            print(f"seed {seed} {label}: failed: {e}", flush=True)
+            continue
+        report = json.loads((out / "report.json").read_text())
+        result[label] = {
+            "moved": moved, "datum": report["adjustment"]["datum"],
+            "stations": station_errors(out, truth),
+            "static": static_errors(out, run.static_scans),
+            "rejected_points": report["control"]["rejected"],
+            "control_rows": [{k: r[k] for k in ("name", "scan", "d3d_mm", "normalised", "decision", "input_d3d_mm")}
+                             for r in report["control"]["rows"]],
+            "check_mm": {"corrected": report["check"]["summary"]["d3d_mm"],
+                         "input": report["check"]["summary_input"]["d3d_mm"],
+                         "corrected_horizontal": report["check"]["summary"]["horizontal_mm"],
+                         "corrected_vertical": report["check"]["summary"]["vertical_mm"]},
+            "loa": report["check"]["loa"]["class"],
+            "wall_s": time.perf_counter() - t0,
+        }
+        s, st = result[label]["stations"], result[label]["static"]
+        print(f"seed {seed} {label}: stations RMS {s['rms_mm']:.2f} max {s['max_mm']:.2f} mm, static RMS "
+              f"{st['rms_mm']:.2f} mm, check RMS {result[label]['check_mm']['corrected']['rms']:.2f} mm "
+              f"(input {result[label]['check_mm']['input']['rms']:.2f}), rejected {result[label]['rejected_points']}",
+              flush=True)
+    return result
+
+
 def summary(results: list[dict]) -> dict:
     out = {}
-    for label in ("n3", "n4", "n6", "wrong"):
-        runs = [r[label] for r in results]
+    labels = TARGET_CASES if results and "t3x4" in results[0] else ("n3", "n4", "n6", "wrong")
+    for label in labels:
+        runs = [r[label] for r in results if "failed" not in r[label]]
+        failed = [f"seed {r['seed']}: {r[label]['failed']}" for r in results if "failed" in r[label]]
+        if not runs:
+            out[label] = {"failed": failed}
+            continue
         z = np.concatenate([np.array(r["stations"]["z"]) for r in runs])
         check = np.array([r["check_mm"]["corrected"]["rms"] for r in runs])
         out[label] = {
@@ -133,6 +229,13 @@ def summary(results: list[dict]) -> dict:
             "moved": [list((r["moved"] or {}).keys()) for r in runs],
             "loa": [r["loa"] for r in runs],
         }
+        if failed:
+            out[label]["failed"] = failed
+        if "static" in runs[0]:
+            zs = np.concatenate([np.array(r["static"]["z"]) for r in runs])
+            out[label].update({
+                "static_rms_mm_pooled": float(np.sqrt(np.mean([r["static"]["rms_mm"] ** 2 for r in runs]))),
+                "static_error_over_sigma_pooled_xyz": np.sqrt(np.mean(zs**2, axis=0)).tolist()})
     return out
 
 
@@ -140,18 +243,27 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "control.json")
+    parser.add_argument("--scenario", choices=("stand-stills", "static-targets"), default="stand-stills")
+    parser.add_argument("--summarise", type=Path, nargs="+", help="pool the results of these files, run nothing")
     args = parser.parse_args()
+    if args.summarise:
+        pooled = [r for path in args.summarise for r in json.loads(path.read_text())["results"]]
+        print(json.dumps(summary(pooled), indent=1))
+        return
     results = []
     for seed in args.seeds:
         with tempfile.TemporaryDirectory(prefix=f"kinreg-control-{seed}-") as tmp:
-            results.append(evaluate(seed, Path(tmp)))
+            evaluate_seed = evaluate_targets if args.scenario == "static-targets" else evaluate
+            results.append(evaluate_seed(seed, Path(tmp)))
         write(args.out, results)  # after every seed: a long run stopped early keeps what it has
     print(json.dumps(summary(results), indent=1))
     print(f"written {args.out}")
 
 
 def write(path: Path, results: list[dict]) -> None:
-    plain = [{k: ({**v, "stations": {s: x for s, x in v["stations"].items() if s != "z"}} if isinstance(v, dict)
+    # The static-target results keep the stations' error/sigma ("z"): --summarise pools them.
+    plain = [r if "t3x4" in r else
+             {k: ({**v, "stations": {s: x for s, x in v["stations"].items() if s != "z"}} if isinstance(v, dict)
                   else v) for k, v in r.items()} for r in results]
     path.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv),
                                 "seeds_done": [r["seed"] for r in results], "summary": summary(results),

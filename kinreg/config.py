@@ -225,8 +225,14 @@ class ControlConfig:
     # With one or two control points and no other datum, the rotations they leave free are held
     # at the first station's: the datum observation's standard deviation [rad] (tiny: a datum).
     free_rotation_sigma_rad: float = 1e-6
+    # A target in a static scan: the scan's own standard deviation [mm] per axis of the target's
+    # centre in its frame, added (in quadrature) to the row's survey sigma_mm. 2 mm: what a
+    # terrestrial scanner's checkerboard or sphere target holds at 10-30 m (1-2 mm), taken high.
+    target_sigma_mm: float = 2.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.target_sigma_mm) and self.target_sigma_mm >= 0):
+            raise ConfigError(f"[control] target_sigma_mm: expected a number >= 0, got {self.target_sigma_mm!r}")
         r = self.reference_point_m
         if not isinstance(r, list | tuple) or len(r) != 3 or any(
                 isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) for v in r):

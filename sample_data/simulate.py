@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from kinreg.simulation.files import write_run
+from kinreg.simulation.files import static_targets_csv, write_run
 from kinreg.simulation.run import SimulationConfig, simulate_run
 from kinreg.simulation.scene import BuildingLayout
 
@@ -49,6 +49,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     t = p.add_argument_group("static scans")
     t.add_argument("--n-static", type=int, default=d.static.n_scans)
     t.add_argument("--static-step-deg", type=float, default=d.static.angle_step_deg)
+    t.add_argument("--targets", type=int, default=0, metavar="N",
+                   help="also write N targets per static scan as targets.csv (surveyed, kinreg's --control "
+                        "format with station,sx,sy,sz) and targets_truth.csv (true coordinates)")
     o = p.add_argument_group("coordinates")
     o.add_argument("--origin", type=float, nargs=3, default=d.origin_xyz, metavar=("E", "N", "H"),
                    help="offset added to every object-frame output")
@@ -95,6 +98,10 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     run = simulate_run(cfg)
     files = write_run(run, args.out, progress=_PrintProgress())
+    if args.targets > 0:
+        for name, noise in (("targets.csv", True), ("targets_truth.csv", False)):
+            files.files[name] = args.out / name
+            files.files[name].write_text(static_targets_csv(run, args.targets, noise=noise))
     elapsed = time.perf_counter() - t_start
     dp, da = run.drift_at_end()
     print(f"scene {run.scene.name}: {len(run.scene.patches)} patches, {len(run.scene.planes())} planes")

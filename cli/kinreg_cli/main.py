@@ -172,8 +172,9 @@ def process_command(
     static: Annotated[Path | None, typer.Option("--static", help="Registered static scans (E57 with poses).")] = None,
     reference: Annotated[Path | None, typer.Option("--reference", help="Reference planes (TOML).")] = None,
     control: Annotated[Path | None, typer.Option(
-        "--control", help="Control points (CSV name,x,y,z,sigma_mm[,t_start,t_end]): surveyed points the unit stood "
-        "on, observed in the adjustment.")] = None,
+        "--control", help="Control points (CSV name,x,y,z,sigma_mm[,t_start,t_end][,station,sx,sy,sz]): surveyed "
+        "points the unit stood on, or targets in a static scan (station: its E57 name; sx,sy,sz: the target in its "
+        "frame), observed in the adjustment.")] = None,
     check: Annotated[Path | None, typer.Option(
         "--check", help="Check points (same CSV format): only compared with the corrected trajectory.")] = None,
     config: ConfigOption = None,

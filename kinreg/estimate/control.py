@@ -1,4 +1,5 @@
-"""Control and check points (METHOD.md section 2, item 10): surveyed points the unit stood on.
+"""Control and check points (METHOD.md section 2, item 10): surveyed points the unit stood on, and
+targets in static scans.
 
 A *stand-still* is a stretch of the trajectory whose speed and rotation rate stay below
 ``[control] max_speed_mps`` and ``max_rotation_deg_per_s`` (over ``smoothing_s``) for at least
@@ -22,6 +23,14 @@ Tying the point to the nearest station alone instead errs by the drift over the 
 reports the point where the corrected trajectory is not: on the simulated runs of
 ``benchmarks/eval_control.py`` (6 s windows, stand-stills 0.75-2.25 s from the nearest centre)
 by up to 0.85 mm.
+
+A *target in a static scan* (a row with ``station, sx, sy, sz``) is an observation of that static
+station's pose alone: ``X = R_s s + t_s`` with ``s`` the target's coordinates in the scan's frame,
+the same ``POINT`` observation on one node (no second station, no trajectory), with covariance
+``(sigma^2 + target_sigma^2) I``: the survey's ``sigma_mm`` and the scan's own measurement of the
+target centre, ``[control] target_sigma_mm``. Such a static scan is held by its targets, not by
+``[static] datum`` (:func:`kinreg.estimate.datum.build_network`); targets and stand-still points
+together are the datum as control points are (three or more off one line fix every direction).
 """
 
 from __future__ import annotations
@@ -37,7 +46,7 @@ from kinreg.config import ControlConfig
 from kinreg.errors import InputError
 from kinreg.estimate.drift import DriftRates, window_bias_covariance
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_multiply, quat_to_rotvec, skew
-from kinreg.io.control import ControlPoints
+from kinreg.io.control import ControlPoint, ControlPoints
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation, ScanKind, Station, Trajectory
 
 log = logging.getLogger(__name__)
@@ -94,30 +103,79 @@ def find_stand_stills(trajectory: Trajectory, config: ControlConfig, run: int = 
 
 
 @dataclass(frozen=True, eq=False)
+class StaticTarget:
+    """A point measured as a target in a static scan: its name, the scan (its 0-based position in
+    the static E57 file, and its name), the target's coordinates (3,) [m] in the scan's frame, the
+    surveyed coordinates (3,) [m] and their standard deviation per axis [m]."""
+
+    name: str
+    scan: int
+    scan_name: str
+    scan_xyz: FloatArray
+    xyz: FloatArray
+    sigma_m: float
+
+
+@dataclass(frozen=True, eq=False)
 class Assignment:
-    """Control points with the stand-still each stands for (the same order as ``names``), and the
-    problems met, one line each (points left out)."""
+    """Control points with the stand-still each stands for (the same order as ``names``), the
+    targets in static scans, and the problems met, one line each (points left out)."""
 
     names: tuple[str, ...]
     xyz: FloatArray  # (n, 3) surveyed coordinates [m]
     sigma_m: FloatArray  # (n,)
     stand_stills: tuple[StandStill, ...]
     problems: tuple[str, ...]
+    targets: tuple[StaticTarget, ...] = ()
+
+    @property
+    def all_names(self) -> tuple[str, ...]:
+        """The stand-still points' names, then the targets'."""
+        return self.names + tuple(t.name for t in self.targets)
+
+
+def static_target(point: ControlPoint, static_scans: Sequence[str] | None, source: str,
+                  what: str = "control") -> StaticTarget:
+    """The target row ``point`` tied to its static scan: ``point.station`` is a scan's name in
+    ``static_scans`` (the static E57 file's scan names, in file order; ``None``: no ``--static``
+    given), or else its 0-based position there. Raises :class:`InputError` naming the file and
+    the row when there are no static scans or no such scan."""
+    if point.scan_xyz is None:
+        raise ValueError(f"point {point.name} is not a target in a static scan")
+    where = f"line {point.line}: {what} target {point.name}"
+    if static_scans is None:
+        raise InputError(f"{where} names static scan {point.station!r}, but no static scans are given (--static)",
+                         source)
+    if point.station in static_scans:
+        k = list(static_scans).index(point.station)
+    elif point.station.isdigit() and int(point.station) < len(static_scans):
+        k = int(point.station)
+    else:
+        listed = ", ".join(static_scans[:8]) + (", ..." if len(static_scans) > 8 else "")
+        raise InputError(f"{where}: no static scan {point.station!r} (the static scans are {listed}, or their "
+                         f"positions 0-{len(static_scans) - 1})", source)
+    return StaticTarget(point.name, k, static_scans[k], point.scan_xyz, point.xyz, point.sigma_m)
 
 
 def assign_points(points: ControlPoints, trajectories: Sequence[Trajectory], config: ControlConfig,
-                  what: str = "control") -> Assignment:
+                  what: str = "control", static_scans: Sequence[str] | None = None) -> Assignment:
     """Each point's stand-still: its own interval where the file gives one (an interval outside
     every run's trajectory raises :class:`InputError`), else the nearest detected stand-still
     within ``config.gate_m``, one to one. Points that are ambiguous or too far from every
     stand-still are left out with one line each in ``problems`` (logged as warnings); when no point
-    is left, :class:`InputError` names the file and the reason."""
+    is left, :class:`InputError` names the file and the reason. Targets in static scans are tied
+    to their scan in ``static_scans`` (:func:`static_target`, which raises for an unknown one)."""
     reference = np.asarray(config.reference_point_m)
     problems: list[str] = []
     chosen: dict[int, StandStill] = {}
-    detected = [s for k, traj in enumerate(trajectories) for s in find_stand_stills(traj, config, k)]
+    targets = tuple(static_target(p, static_scans, points.source, what) for p in points.targets)
+    standing = any(not p.is_target for p in points.points)
+    detected = ([s for k, traj in enumerate(trajectories) for s in find_stand_stills(traj, config, k)]
+                if standing else [])
     claims: dict[int, list[int]] = {}
     for n, p in enumerate(points.points):
+        if p.is_target:
+            continue
         if p.has_times:
             run = next((k for k, traj in enumerate(trajectories)
                         if traj.t_start_s <= p.t_start_s and p.t_end_s <= traj.t_end_s), None)
@@ -150,12 +208,13 @@ def assign_points(points: ControlPoints, trajectories: Sequence[Trajectory], con
     for line in problems:
         log.warning("%s", line)
     kept = sorted(chosen)
-    if not kept:
+    if not kept and not targets:
         raise InputError(f"no {what} point could be tied to the trajectory: " + "; ".join(problems[:3]),
                          points.source)
-    return Assignment(tuple(points.points[n].name for n in kept), np.array([points.points[n].xyz for n in kept]),
+    return Assignment(tuple(points.points[n].name for n in kept),
+                      np.array([points.points[n].xyz for n in kept]).reshape(-1, 3),
                       np.array([points.points[n].sigma_m for n in kept]), tuple(chosen[n] for n in kept),
-                      tuple(problems))
+                      tuple(problems), targets)
 
 
 def _ranges(trajectories: Sequence[Trajectory]) -> str:
@@ -168,7 +227,9 @@ class ControlTie:
     the reference point ``q_scan`` (3,) in its scan frame, the surveyed coordinates ``xyz`` (3,),
     their covariance ``cov_m2`` (3, 3) (survey plus scatter), the stand-still's time and its
     distance in time to that station [s]; the other station around it (``other``, -1: none), the
-    point in its frame (``q_other``) and its weight ``share`` in the interpolated pose."""
+    point in its frame (``q_other``) and its weight ``share`` in the interpolated pose. A target in
+    a static scan (``target``) has that static station alone, the target in its frame as
+    ``q_scan``, and no time (``t_s`` nan, ``dt_s`` 0)."""
 
     name: str
     station: int
@@ -180,6 +241,7 @@ class ControlTie:
     other: int = -1
     q_other: FloatArray = field(default_factory=lambda: np.zeros(3))
     share: float = 0.0
+    target: bool = False
 
     def predicted(self, poses: Pose) -> FloatArray:
         """The reference point (3,) on the interpolated pose of the stations ``poses`` (all)."""
@@ -192,7 +254,8 @@ class ControlTie:
 def tie_points(assignment: Assignment, stations: Sequence[Station], trajectories: Sequence[Trajectory],
                config: ControlConfig) -> tuple[ControlTie, ...]:
     """One :class:`ControlTie` per assigned point: the quasi-static stations of its run before and
-    after the stand-still's mean time (the first or last alone beyond them)."""
+    after the stand-still's mean time (the first or last alone beyond them); then one per target
+    in a static scan, on that scan's station (:func:`target_ties`)."""
     reference = np.asarray(config.reference_point_m)
     ties = []
     for name, xyz, sigma, still in zip(assignment.names, assignment.xyz, assignment.sigma_m,
@@ -214,7 +277,23 @@ def tie_points(assignment: Assignment, stations: Sequence[Station], trajectories
         ties.append(ControlTie(name, k, q[0], np.asarray(xyz, dtype=np.float64),
                                sigma**2 * np.eye(3) + still.scatter_m2, still.t_s, still.t_s - stations[k].t_s,
                                other, q_other, float(share)))
-    return tuple(ties)
+    return tuple(ties) + target_ties(assignment.targets, stations, config)
+
+
+def static_station_index(stations: Sequence[Station], scan: int) -> int:
+    """The index in ``stations`` of the static E57 file's scan ``scan`` (the static stations are
+    the file's scans, in file order)."""
+    return [k for k, s in enumerate(stations) if s.kind is ScanKind.STATIC][scan]
+
+
+def target_ties(targets: Sequence[StaticTarget], stations: Sequence[Station],
+                config: ControlConfig) -> tuple[ControlTie, ...]:
+    """One :class:`ControlTie` per target in a static scan: its static station, the target in the
+    scan's frame, the covariance ``(sigma^2 + target_sigma^2) I`` (see the module's docstring)."""
+    target_sigma_m = config.target_sigma_mm / 1000.0
+    return tuple(ControlTie(t.name, static_station_index(stations, t.scan), np.asarray(t.scan_xyz, dtype=np.float64),
+                            np.asarray(t.xyz, dtype=np.float64), (t.sigma_m**2 + target_sigma_m**2) * np.eye(3),
+                            math.nan, 0.0, target=True) for t in targets)
 
 
 def control_observations(ties: Sequence[ControlTie], stations: Sequence[Station], rates: DriftRates,
@@ -237,6 +316,8 @@ def control_covariance(tie: ControlTie, stations: Sequence[Station], rates: Drif
                        previous: BlockResult | None = None, window_bias: bool = True) -> FloatArray:
     """The covariance (3, 3) [m^2] of a control observation (see the module's docstring); without
     ``window_bias`` it observes the sensor pose, not the scan frame (:mod:`kinreg.estimate.frames`)."""
+    if tie.target:  # a static scan: no trajectory between the target and its station
+        return tie.cov_m2
     k = tie.station
     T = previous.poses[k] if previous is not None else stations[k].T_obj_scan
     R = T.rotation_matrix

@@ -32,6 +32,7 @@ from kinreg.progress import Progress
 from kinreg.types import (
     BlockResult,
     Link,
+    LinkStatus,
     ObservationKind,
     Plane,
     RelativeObservation,
@@ -82,6 +83,28 @@ def _axis_name(v: np.ndarray) -> str:
     return "xyz"[k] if abs(v[k]) > 0.99 else "(" + ", ".join(f"{c:.2f}" for c in v) + ")"
 
 
+def free_static_directions(stations: Sequence[Station], links: Sequence[Link], holding: Sequence[int],
+                           sigma_m: float = 0.05, sigma_deg: float = 0.05) -> list[str]:
+    """The directions, in words, that the plane links between the static stations ``holding`` (they
+    hold the datum) and all other stations leave nearly free: where their summed information
+    (object axes, each link's turned by its second station's rotation) is below ``1 / sigma^2`` for
+    a translation or a rotation. A static scan in a corridor sees no plane across it: alone, it
+    leaves the translation along the corridor to nothing."""
+    held = set(holding)
+    info = np.zeros((6, 6))
+    for link in links:
+        if link.status is not LinkStatus.OK or link.rank == 0 or (link.scan_i in held) == (link.scan_j in held):
+            continue
+        B = np.kron(np.eye(2), stations[link.scan_j].T_obj_scan.rotation_matrix)
+        info += B @ link.info_planes @ B.T
+    words = []
+    for block, floor, what in ((slice(0, 3), sigma_m**-2, "translation along"),
+                               (slice(3, 6), np.radians(sigma_deg) ** -2, "rotation about")):
+        w, V = np.linalg.eigh(0.5 * (info[block, block] + info[block, block].T))
+        words += [f"{what} {_axis_name(V[:, k])}" for k in range(3) if w[k] < floor]
+    return words
+
+
 def _check_reference_datum(ties: list[Tie], references: ReferencePlanes) -> None:
     """The tied reference planes must fix all six datum directions: normals spanning three
     directions fix the translations (and then the rotations too)."""
@@ -109,16 +132,35 @@ def build_network(
     ``[static] sigma_*``), reference planes (a tie plane per detected plane on one), or else the
     first station. Control points (``controls``) join any of these; alone, three or more (not on
     one line) are the datum, and the rotations that one or two leave free are held at the first
-    station's. A part of the network that no link ties to the datum is refused, or (``[block]
-    disconnected = "fix_each"``) held on its own first station. Raises :class:`ConfigError` when
-    the reference planes tie nothing or leave a datum direction free, :class:`EstimationError`
-    when the network falls apart."""
+    station's. A static scan with control targets is held by its targets, not by ``static``; with
+    targets, ``static.datum = "fixed"`` holds no static scan: those without targets keep their
+    pose as an observation with ``static.prior_sigma_*`` (``"observed"``: ``static.sigma_*``). A
+    part of the network that no link ties to the datum is refused, or (``[block] disconnected =
+    "fix_each"``) held on its own first station. Raises :class:`ConfigError` when the reference
+    planes tie nothing or leave a datum direction free, :class:`EstimationError` when the network
+    falls apart."""
     poses_initial = Pose.stack([s.T_obj_scan for s in stations])
     is_static = np.array([s.kind is ScanKind.STATIC for s in stations])
     fixed = np.zeros(len(stations), dtype=bool)
     datum_obs: list[RelativeObservation] = []
     ties: list[Tie] = []
-    datum = []
+    datum: list[str] = []
+    # A static scan with control targets is held by them (its E57 pose is only the start). With
+    # targets, no static scan is held fixed at its E57 pose: the targets are the datum, and a scan
+    # fixed where its registration put it would compete with the survey (a scan 2 cm off had good
+    # targets and stand-still points rejected in its place). The others keep their E57 pose as a
+    # weak observation (the static prior, [static] prior_sigma_*), for the directions their planes
+    # leave free (a scan in a corridor floated 2 m along it without); "observed" observes them.
+    targeted = sorted({t.station for t in controls if t.target})
+    is_static[targeted] = False
+    unfixed = ""  # said after the datum (it is none)
+    if targeted and static is not None and static.datum is StaticDatum.FIXED and is_static.any():
+        unfixed = (f"static scans without targets not fixed (held by their planes, their E57 poses observed with "
+                   f"{static.prior_sigma_m:g} m / {static.prior_sigma_deg:g} deg)")
+        prior_sigma = pose_sigmas(static.prior_sigma_m, np.radians(static.prior_sigma_deg))
+        datum_obs += [RelativeObservation(ObservationKind.STATION, int(k), -1, stations[int(k)].T_obj_scan,
+                                          np.diag(1.0 / prior_sigma**2), 6) for k in np.flatnonzero(is_static)]
+        is_static[:] = False
     if static is not None and is_static.any():
         if static.datum is StaticDatum.FIXED:
             fixed |= is_static
@@ -142,7 +184,22 @@ def build_network(
             datum_obs.append(first_station_rotation(axes, 0, stations[0].T_obj_scan,
                                                     config.control.free_rotation_sigma_rad))
             fixes += f"; the first station's rotation about {'every axis' if len(axes) == 3 else 'that line'}"
-        datum.append(f"{len(controls)} control point(s) (fixing {fixes})")
+        n_targets = sum(t.target for t in controls)
+        on = (f", {n_targets} of them targets in static scan(s) {', '.join(stations[k].name for k in targeted)}"
+              if n_targets else "")
+        datum.append(f"{len(controls)} control point(s){on} (fixing {fixes})")
+        if n_targets == len(controls) and references is None:
+            # The targets hold their static scans; the rest of the network hangs on those scans' links.
+            holding = targeted + [int(k) for k in np.flatnonzero(is_static)]
+            free = free_static_directions(stations, links, holding)
+            if free:
+                log.warning("the static scans that hold the datum (%s) are linked to the other scans by planes that "
+                            "leave the %s nearly free (sigma above 5 cm or 0.05 deg): the stations' sigmas show "
+                            "it; add targets on a static scan that sees planes across it, or stand-still control "
+                            "points", ", ".join(stations[k].name for k in holding), " and ".join(free))
+                datum.append(f"{' and '.join(free)} nearly free (the static scans' links)")
+        if unfixed:
+            datum.append(unfixed)
     if not datum:
         fixed[0] = True
         datum.append("first station")
@@ -206,8 +263,10 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
             break
         name = controls[worst].name
         normalised = float(np.sqrt(scores[worst] / 3.0))
-        log.warning("control point %s rejected: it does not fit the network and the other control points (normalised "
-                    "residual %.1f against its sigma)", name, normalised)
+        log.warning("control point %s%s rejected: it does not fit the network and the other control points "
+                    "(normalised residual %.1f against its sigma)", name,
+                    f" (target in static scan {network.stations[controls[worst].station].name})"
+                    if controls[worst].target else "", normalised)
         rejected.append((name, normalised))
         network = dataclasses.replace(network, datum=dataclasses.replace(
             network.datum, controls=controls[:worst] + controls[worst + 1:]))

@@ -85,6 +85,7 @@ from kinreg.run.stages import (
     plan_large_outputs,
     read_input_trajectory,
     read_run_trajectories,
+    static_scan_names,
     write_corrected_runs,
     write_sequence,
 )
@@ -403,15 +404,17 @@ def write_tables(out: Path, report: dict[str, Any], network: Network, result: Bl
 def read_points(inputs: ProcessInputs, trajectories: Sequence[Trajectory], references: ReferencePlanes | None,
                 config: KinregConfig) -> tuple[Assignment | None, Assignment | None]:
     """The control and check points (``--control``, ``--check``), each with its stand-still on the
-    trajectories (moved into the reference frame, as the stations will be); ``None`` where not
-    given. Raises :class:`~kinreg.errors.InputError` for a bad file or one whose points tie to
-    nothing."""
+    trajectories (moved into the reference frame, as the stations will be), or its static scan
+    (``--static``); ``None`` where not given. Raises :class:`~kinreg.errors.InputError` for a bad
+    file or one whose points tie to nothing."""
     moved = [to_reference_frame([], t, references)[1] for t in trajectories]
     found = []
+    scans = static_scan_names(inputs.static) if inputs.static is not None else None
     for path, what in ((inputs.control, "control"), (inputs.check, "check")):
-        found.append(None if path is None else assign_points(read_control_points(path), moved, config.control, what))
-    if found[0] is not None and found[1] is not None and set(found[0].names) & set(found[1].names):
-        both = ", ".join(sorted(set(found[0].names) & set(found[1].names))[:5])
+        found.append(None if path is None else assign_points(read_control_points(path), moved, config.control, what,
+                                                             scans))
+    if found[0] is not None and found[1] is not None and set(found[0].all_names) & set(found[1].all_names):
+        both = ", ".join(sorted(set(found[0].all_names) & set(found[1].all_names))[:5])
         raise ConfigError(f"point(s) {both} are both control and check points: a check point must stay out of the "
                           "adjustment", inputs.check)
     return found[0], found[1]
@@ -428,7 +431,7 @@ def points_report(network: Network, result: BlockResult, rates: DriftRates, cont
         out["control"] = control_section(network, result, rates, control, trajectories, corrections, reference,
                                          config.block.alpha)
     if check is not None:
-        out["check"] = check_section(check, trajectories, corrections, reference)
+        out["check"] = check_section(check, trajectories, corrections, reference, network.stations, result)
     return out
 
 

@@ -124,6 +124,18 @@ def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: P
     return [r[0] for r in done], [r[1] for r in done]
 
 
+def static_scan_name(name: str, k: int) -> str:
+    """The station name of the static E57 file's scan ``k`` (its ``name``; else by its position)."""
+    return name or f"static_{k:03d}"
+
+
+def static_scan_names(path: Path) -> list[str]:
+    """The station names of a static E57 file's scans, in file order (headers only: cheap)."""
+    from kinreg.io.e57 import list_e57_scans
+
+    return [static_scan_name(h.name, k) for k, h in enumerate(list_e57_scans(path))]
+
+
 def detect_static_planes(path: Path | None, first_id: int, config: PlanesConfig, progress: Progress,
                          run: RunCache | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
     """Planes of every static scan of a registered E57 (poses in the object frame required);
@@ -145,7 +157,7 @@ def detect_static_planes(path: Path | None, first_id: int, config: PlanesConfig,
             scan = replace(read_e57_scan(path, k, require_pose=True), scan_id=first_id + k)
             found = tuple(replace(p, scan_id=scan.scan_id) for p in detect_planes(scan, config))
             nan = float("nan")
-            station = Station(scan.scan_id, scan.name or f"static_{k:03d}", ScanKind.STATIC, nan, nan, nan,
+            station = Station(scan.scan_id, static_scan_name(scan.name, k), ScanKind.STATIC, nan, nan, nan,
                               scan.T_obj_scan, len(scan))
         if run is not None:
             if entry is None:

@@ -140,6 +140,27 @@ def control_csv(run: SimulatedRun, noise: bool = True, times: bool = False, move
     return "\n".join([header] + [rows[n] for n in chosen]) + "\n"
 
 
+def static_targets_csv(run: SimulatedRun, n_per_scan: int = 4, noise: bool = True,
+                       moved: dict[str, Any] | None = None, names: Sequence[str] | None = None,
+                       scans: Sequence[int] | None = None) -> str:
+    """Targets in the static scans as a kinreg control file (``name,x,y,z,sigma_mm,station,sx,sy,sz``:
+    surveyed or true object-frame coordinates, the scan's name and the target in its frame; see
+    :meth:`SimulatedRun.static_targets`). ``sigma_mm`` is the survey's ``control_sigma_mm`` (the
+    scan's own ``target_sigma_mm`` is ``[control] target_sigma_mm`` of kinreg's config). ``moved``
+    maps a name to an offset [m] added to its surveyed coordinates (a wrong target); ``names``
+    keeps only those targets (in their order), ``scans`` only the targets of those scans."""
+    rows = {}
+    for t in run.static_targets(n_per_scan, noise=noise):
+        if scans is not None and t.scan not in scans:
+            continue
+        p = t.xyz + np.asarray((moved or {}).get(t.name, (0.0, 0.0, 0.0)), dtype=np.float64)
+        s = t.scan_xyz
+        rows[t.name] = (f"{t.name},{p[0]:.4f},{p[1]:.4f},{p[2]:.4f},{run.config.control_sigma_mm:g},{t.scan_name},"
+                        f"{s[0]:.4f},{s[1]:.4f},{s[2]:.4f}")
+    chosen = list(rows) if names is None else list(names)
+    return "\n".join(["name,x,y,z,sigma_mm,station,sx,sy,sz"] + [rows[n] for n in chosen]) + "\n"
+
+
 def scene_as_dict(run: SimulatedRun) -> dict[str, Any]:
     """truth_scene.json content: planes and patches in the output object frame."""
     o = run.origin

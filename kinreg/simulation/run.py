@@ -17,6 +17,7 @@ from kinreg.geometry import (
     FloatArray,
     Pose,
     quat_to_rotvec,
+    rotvec_to_quat,
 )
 from kinreg.simulation.drift import DriftConfig, DriftModel, _offset_trajectory, drifted_trajectory
 from kinreg.simulation.scene import BuildingConfig, BuildingLayout, Scene, ScenePlane, make_building
@@ -57,6 +58,9 @@ class SimulationConfig:
     # The surveyed coordinates of the control points at the walk's stand-stills (control.csv) carry
     # a survey error of this standard deviation per axis; control_truth.csv holds the true ones.
     control_sigma_mm: float = 3.0
+    # Targets in the static scans (SimulatedRun.static_targets): the scan measures each target's
+    # centre in its frame with this standard deviation per axis (the survey's is control_sigma_mm).
+    target_sigma_mm: float = 2.0
 
 
 def config_as_dict(config: SimulationConfig) -> dict[str, Any]:
@@ -120,6 +124,20 @@ class CloudBlock:
 
 
 @dataclass(frozen=True, eq=False)
+class SimulatedTarget:
+    """A target on a wall seen by a static scan: its name, the scan (position in ``static_scans``
+    and name), the true object-frame coordinates (3,), the surveyed ones (3,) and the coordinates
+    (3,) the scan measured in its own frame (from its true pose)."""
+
+    name: str
+    scan: int
+    scan_name: str
+    true_xyz: FloatArray
+    xyz: FloatArray
+    scan_xyz: FloatArray
+
+
+@dataclass(frozen=True, eq=False)
 class SimulatedRun:
     """A simulated acquisition with its ground truth. Object-frame values include ``origin_xyz``.
 
@@ -176,6 +194,52 @@ class SimulatedRun:
         if noise:
             xyz = xyz + 1e-3 * self.config.control_sigma_mm * _rng(self.config.seed, 5).standard_normal(xyz.shape)
         return intervals, xyz
+
+    def static_targets(self, n_per_scan: int = 4, noise: bool = True) -> list[SimulatedTarget]:
+        """``n_per_scan`` targets on the walls around each static scan, spread in azimuth (every
+        ``360 / n`` degrees from a random start) and alternately 0 and 20 degrees above the
+        scanner's horizon: the farthest wall or ceiling point (up to 25 m) within 40 degrees of that
+        azimuth. With ``noise`` the surveyed coordinates carry ``config.control_sigma_mm`` and the
+        scan's coordinates ``config.target_sigma_mm`` per axis; each has its own random stream, so
+        the walk, drift, cloud and static scans do not change with the targets. Named ``S00T1``,
+        ``S00T2``, ... by scan and target."""
+        targets = []
+        start = _rng(self.config.seed, 6).uniform(0.0, 2.0 * np.pi, len(self.static_scans))
+        for k, scan in enumerate(self.static_scans):
+            R, t_local = scan.T_obj_scan.rotation_matrix, scan.T_obj_scan.t_xyz - self.origin
+            for j in range(n_per_scan):
+                # The farthest wall or ceiling point within +-40 degrees of the target's azimuth.
+                elevation = math.radians(0.0 if j % 2 == 0 else 20.0)
+                a = start[k] + 2.0 * np.pi * j / n_per_scan + np.radians(np.arange(-40.0, 40.1, 5.0))
+                d_scan = np.column_stack([np.cos(elevation) * np.cos(a), np.cos(elevation) * np.sin(a),
+                                          np.full(len(a), math.sin(elevation))])
+                r, pid = self.scene.raycast(np.broadcast_to(t_local, d_scan.shape), d_scan @ R.T, 25.0, 1.5)
+                r = np.where(pid >= 0, r, -1.0)
+                best = int(np.argmax(r))
+                if r[best] < 1.5:
+                    continue
+                true_xyz = t_local + R @ d_scan[best] * r[best] + self.origin
+                targets.append(SimulatedTarget(f"S{k:02d}T{j + 1}", k, scan.name, true_xyz, true_xyz.copy(),
+                                               d_scan[best] * r[best]))
+        if noise and targets:
+            survey = _rng(self.config.seed, 8).standard_normal((len(targets), 3)) * 1e-3 * self.config.control_sigma_mm
+            measured = _rng(self.config.seed, 9).standard_normal((len(targets), 3)) * 1e-3 * self.config.target_sigma_mm
+            targets = [dataclasses.replace(t, xyz=t.true_xyz + survey[n], scan_xyz=t.scan_xyz + measured[n])
+                       for n, t in enumerate(targets)]
+        return targets
+
+    def static_scans_misregistered(self, shift_m: float = 0.02, turn_deg: float = 0.1) -> tuple[Scan, ...]:
+        """The static scans with poses off by ``shift_m`` (horizontal, random direction) and
+        ``turn_deg`` (about a random axis) each: a registration error, for runs where the scans'
+        targets, not their poses, are to hold the datum (own random stream)."""
+        rng = _rng(self.config.seed, 10)
+        out = []
+        for scan in self.static_scans:
+            heading, axis = rng.uniform(0.0, 2.0 * np.pi), rng.standard_normal(3)
+            error = Pose(rotvec_to_quat(math.radians(turn_deg) * axis / np.linalg.norm(axis)),
+                         shift_m * np.array([math.cos(heading), math.sin(heading), 0.0]))
+            out.append(dataclasses.replace(scan, T_obj_scan=scan.T_obj_scan.compose(error)))
+        return tuple(out)
 
     def drift_at_end(self) -> tuple[float, float]:
         """(position difference slam - truth in metres, drift rotation angle in degrees) at the end."""
