@@ -174,14 +174,17 @@ class _WindowMap:
         return (y - self.adjusted.t_xyz) @ self.adjusted.rotation_matrix
 
 
+_STEP_M = 0.01  # along the tangents, for the tilt
+
+
 def _deskewed(p: Plane, mapped: _WindowMap) -> Plane:
-    """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and a metre along each
-    tangent at the time it was seen there (its time slope), which gives the tilt."""
+    """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and a point a little along
+    each tangent at the time it was seen there (its time slope), which gives the tilt."""
     tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
-    u, v = p.basis_uv
+    u, v = _STEP_M * p.basis_uv  # the tilt at the centroid (a plane fit's, for a patch about it)
     slope = np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
     c, cu, cv = mapped(np.array([p.centroid_xyz, p.centroid_xyz + u, p.centroid_xyz + v]),
-                       tau + np.array([0.0, *slope]))
+                       tau + _STEP_M * np.array([0.0, *slope]))
     normal = np.cross(cu - c, cv - c)
     normal /= np.linalg.norm(normal) * (1.0 if normal @ p.normal > 0.0 else -1.0)
     u_new = cu - c - ((cu - c) @ normal) * normal
