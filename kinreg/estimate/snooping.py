@@ -4,10 +4,56 @@ observation kind."""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+
 import numpy as np
 from scipy import stats
 
-from kinreg.types import ObservationTest, RelativeObservation
+from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationTests:
+    """The figures of :class:`~kinreg.types.ObservationTest` for many observations, as arrays (k,)
+    (``kind``: the :class:`~kinreg.types.ObservationKind` values; ``cov_adjusted`` (k, 6, 6))."""
+
+    index: np.ndarray
+    kind: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    statistic: np.ndarray
+    dof: np.ndarray
+    redundancy: np.ndarray
+    normalised: np.ndarray
+    rejected: np.ndarray
+    vtpv: np.ndarray
+    min_redundancy: np.ndarray
+    cov_adjusted: np.ndarray | None = None
+
+    @classmethod
+    def from_tests(cls, tests: Sequence[ObservationTest]) -> ObservationTests:
+        def column(name: str, dtype: type) -> np.ndarray:
+            return np.array([getattr(t, name) for t in tests], dtype=dtype).reshape(-1)
+
+        return cls(column("index", int), np.array([t.kind.value for t in tests], dtype=str).reshape(-1),
+                   column("i", int), column("j", int), column("statistic", float), column("dof", int),
+                   column("redundancy", float), column("normalised", float), column("rejected", bool),
+                   column("vtpv", float), column("min_redundancy", float))
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def as_tests(self) -> list[ObservationTest]:
+        """One :class:`ObservationTest` per observation, in the order of the arrays."""
+        kinds = {k.value: k for k in ObservationKind}
+        # a rejected observation was not tested: no covariance of what it observes
+        cov = [None if self.cov_adjusted is None or rejected else self.cov_adjusted[k]
+               for k, rejected in enumerate(self.rejected.tolist())]
+        return [ObservationTest(*row[:10], min_redundancy=row[10], cov_adjusted=row[11]) for row in zip(
+            self.index.tolist(), [kinds[k] for k in self.kind.tolist()], self.i.tolist(), self.j.tolist(),
+            self.statistic.tolist(), self.dof.tolist(), self.redundancy.tolist(), self.normalised.tolist(),
+            self.rejected.tolist(), self.vtpv.tolist(), self.min_redundancy.tolist(), cov, strict=True)]
 
 
 def taken_back(last_round: list[int], observations: list[RelativeObservation], free_index: np.ndarray,
@@ -30,30 +76,38 @@ _MIN_DIRECTION_REDUNDANCY = 0.02
 _MAX_VARIANCE_GROWTH = 100.0
 
 
-def worst_outliers(tests: list[ObservationTest], alpha: float, budget: int) -> list[ObservationTest]:
-    """Observations to reject in one round: those above the critical value that are the worst
-    among all such observations touching either of their stations (one per neighbourhood, so
+def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
+    """Positions in ``tests`` of the observations to reject in one round, worst first, among the
+    ``candidates`` (bool, k): those above the critical value that are the worst among all such
+    observations touching either of their stations (one per neighbourhood, so
     that an outlier's effect on its neighbours does not reject them too). An observation that
     alone determines some direction (its redundancy there below ``_MIN_DIRECTION_REDUNDANCY``) is
     never rejected: without it the network would be undetermined in that direction (a stretch
     whose planes leave it free, carried by the trajectory alone)."""
-    critical = {dof: stats.chi2.ppf(1.0 - alpha, dof) for dof in {t.dof for t in tests}}
-    bad = [t for t in tests if np.isfinite(t.statistic) and t.redundancy > 0.05 and t.statistic > critical[t.dof]
-           and not t.min_redundancy < _MIN_DIRECTION_REDUNDANCY]
-    bad.sort(key=lambda t: t.statistic / critical[t.dof], reverse=True)
+    dofs = np.unique(tests.dof[candidates])
+    critical = np.full(len(tests), np.inf)
+    for dof in dofs.tolist():
+        at = tests.dof == dof
+        critical[at] = stats.chi2.ppf(1.0 - alpha, dof)
+    with np.errstate(invalid="ignore"):
+        bad = (candidates & np.isfinite(tests.statistic) & (tests.redundancy > 0.05) & (tests.statistic > critical)
+               & ~(tests.min_redundancy < _MIN_DIRECTION_REDUNDANCY))
+    bad = np.flatnonzero(bad)
+    bad = bad[np.argsort(-(tests.statistic[bad] / critical[bad]), kind="stable")]
     taken: set[int] = set()
-    chosen = []
-    for t in bad:
-        if t.i in taken or (t.j >= 0 and t.j in taken):
+    chosen: list[int] = []
+    for k in bad.tolist():
+        i, j = int(tests.i[k]), int(tests.j[k])
+        if i in taken or (j >= 0 and j in taken):
             continue
-        chosen.append(t)
-        taken.update((t.i, t.j))
+        chosen.append(k)
+        taken.update((i, j))
         if len(chosen) >= budget:
             break
     return chosen
 
 
-def variance_components(tests: list[ObservationTest], weights: dict[str, float],
+def variance_components(tests: ObservationTests | Sequence[ObservationTest], weights: dict[str, float],
                          alpha: float) -> dict[str, float]:
     """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current
     weights; a group's weight is divided by sigma_g^2, never above the a-priori weight, and
@@ -61,13 +115,15 @@ def variance_components(tests: list[ObservationTest], weights: dict[str, float],
     (``(e^T P e)_g > chi2(1 - alpha, r_g)``).
     Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
     """
+    if not isinstance(tests, ObservationTests):
+        tests = ObservationTests.from_tests(tests)
     new = dict(weights)
     for kind in weights:
-        group = [t for t in tests if t.kind.value == kind and not t.rejected]
-        r = sum(t.redundancy for t in group)
+        group = (tests.kind == kind) & ~tests.rejected
+        r = float(tests.redundancy[group].sum())
         if r < 5:
             continue
-        omega = sum(t.vtpv for t in group)
+        omega = float(tests.vtpv[group].sum())
         # Only ever inflate the a-priori model: errors shared by all links of a scan (plane-fit
         # systematics) and the trajectory's drift (smooth in time) are invisible in residuals,
         # so a factor below 1 would make the reported sigmas too optimistic. And only where the
