@@ -24,10 +24,10 @@ from kinreg.geometry import FloatArray
 class _SlotPair:
     s: int
     t: int
-    rows: np.ndarray  # the observations with both slots free
-    flip: np.ndarray  # cols[s] < cols[t]: the block goes to (t, s), transposed
-    same: np.ndarray  # cols[s] == cols[t] (s != t): both orders land on one diagonal block
-    scatter: sp.csr_matrix  # (pattern blocks, len(rows)): where each product is summed
+    # (pattern blocks, observations): where each observation's product J_s^T P J_t is summed as it
+    # is (cols[s] >= cols[t]) and where transposed (cols[s] <= cols[t]; both where equal and s != t)
+    direct: sp.csr_matrix
+    flipped: sp.csr_matrix | None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,7 +35,7 @@ class Selection:
     """The scatter of one set of observations (with their ``cols``) into a :class:`NormalEquations`."""
 
     cols: np.ndarray
-    slot_rows: tuple[np.ndarray, ...]  # per slot: the observations with that slot free
+    slots: tuple[int, ...]  # the slots that some observation has free
     pairs: tuple[_SlotPair, ...]
 
 
@@ -59,8 +59,8 @@ class NormalEquations:
 
     def select(self, cols: np.ndarray) -> Selection:
         """The scatter for observations with these ``cols`` (a subset of those of the pattern)."""
-        n_blocks = len(self.pattern.rows)
-        slot_rows = tuple(np.flatnonzero(cols[:, s] >= 0) for s in range(cols.shape[1]))
+        n_blocks, k = len(self.pattern.rows), len(cols)
+        slots = tuple(s for s in range(cols.shape[1]) if np.any(cols[:, s] >= 0))
         pairs = []
         for s, t in _slot_pairs(cols.shape[1]):
             rows = np.flatnonzero((cols[:, s] >= 0) & (cols[:, t] >= 0))
@@ -68,33 +68,39 @@ class NormalEquations:
                 continue
             cs, ct = cols[rows, s], cols[rows, t]
             target = self.pattern.index(cs, ct)
-            scatter = sp.csr_matrix((np.ones(len(rows)), (target, np.arange(len(rows)))), shape=(n_blocks, len(rows)))
-            pairs.append(_SlotPair(s, t, rows, cs < ct, (cs == ct) & (s != t), scatter))
-        return Selection(cols, slot_rows, tuple(pairs))
+
+            def scatter(on: np.ndarray) -> sp.csr_matrix:
+                return sp.csr_matrix((np.ones(np.count_nonzero(on)), (target[on], rows[on])), shape=(n_blocks, k))
+
+            flipped = (cs < ct) | ((cs == ct) & (s != t))
+            pairs.append(_SlotPair(s, t, scatter(cs >= ct), scatter(flipped) if flipped.any() else None))
+        return Selection(cols, slots, tuple(pairs))
 
     def assemble(self, selection: Selection, J: FloatArray, P: FloatArray,
                  e: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The blocks of ``N`` (in the order of ``pattern.rows``) and ``b`` (6 n_free,) from the
         Jacobians ``J`` (k, slots, 6, 6), weights ``P`` (k, 6, 6) and residuals ``e`` (k, 6)."""
-        blocks = np.zeros((len(self.pattern.rows), 36))
-        b = np.zeros(6 * self.n_free)
+        n_blocks = len(self.pattern.rows)
+        direct, flipped = np.zeros((n_blocks, 36)), np.zeros((n_blocks, 36))
+        size = 6 * self.n_free
+        b = np.zeros(size + 6)
         cols = selection.cols
-        JT_P: dict[int, FloatArray] = {}
-        for s, rows in enumerate(selection.slot_rows):
-            if not len(rows):
-                continue
-            JT_P[s] = np.transpose(J[:, s], (0, 2, 1)) @ P  # all rows: cheaper than gathering them first
-            g = np.einsum("kij,kj->ki", JT_P[s][rows], e[rows])
-            b -= np.bincount((6 * cols[rows, s, None] + np.arange(6)).ravel(), weights=g.ravel(), minlength=len(b))
+        # Every product over all observations (contiguous operands: numpy's small-matrix loops are
+        # several times faster than on strided views); the scatter leaves out those without the slot.
+        JT_P, J_t = {}, {}
+        for s in selection.slots:
+            J_t[s] = np.ascontiguousarray(J[:, s])
+            JT_P[s] = np.ascontiguousarray(np.transpose(J_t[s], (0, 2, 1))) @ P
+            g = np.einsum("kij,kj->ki", JT_P[s], e)
+            at = np.where(cols[:, s, None] >= 0, 6 * cols[:, s, None] + np.arange(6), size)
+            b -= np.bincount(at.ravel(), weights=g.ravel(), minlength=len(b))
         for pair in selection.pairs:
-            M = JT_P[pair.s][pair.rows] @ J[pair.rows, pair.t]
-            if pair.s != pair.t:
-                MT = np.transpose(M, (0, 2, 1))
-                M = np.where(pair.flip[:, None, None], MT, M)
-                if pair.same.any():
-                    M[pair.same] += MT[pair.same]
-            blocks += pair.scatter @ M.reshape(-1, 36)
-        return blocks.reshape(-1, 6, 6), b
+            M = (JT_P[pair.s] @ J_t[pair.t]).reshape(-1, 36)
+            direct += pair.direct @ M
+            if pair.flipped is not None:
+                flipped += pair.flipped @ M
+        blocks = direct.reshape(-1, 6, 6) + flipped.reshape(-1, 6, 6).transpose(0, 2, 1)
+        return blocks, b[:size]
 
     def factorize(self, blocks: FloatArray, damping: float = 0.0) -> SparseFactor:
         """The factor of ``N`` (its diagonal raised by ``damping`` times itself)."""
