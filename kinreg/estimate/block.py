@@ -139,9 +139,14 @@ def _subset(a: _Active, active: np.ndarray, weights: dict[str, float]) -> _Activ
     """The active observations of :func:`_gather`'s arrays, ``P`` weighted per kind."""
     sel = np.flatnonzero(active)
     parts = {f.name: getattr(a, f.name)[sel] for f in dataclasses.fields(a)}
-    present, kind_of = np.unique(parts["kinds"], return_inverse=True)
-    parts["P"] = parts["P"] * np.array([weights[k] for k in present])[kind_of.reshape(-1)][:, None, None]
+    parts["P"] = parts["P"] * _weight_of(parts["kinds"], weights)[:, None, None]
     return _Active(**parts)
+
+
+def _weight_of(kinds: np.ndarray, weights: dict[str, float]) -> FloatArray:
+    """Per observation the weight of its kind."""
+    present, kind_of = np.unique(kinds, return_inverse=True)
+    return np.array([weights[k] for k in present], dtype=float)[kind_of.reshape(-1)]
 
 
 def _to_station_axes(R: FloatArray) -> FloatArray:
@@ -231,10 +236,9 @@ def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: F
     e[q, :3] = predicted - a.Z[q].t_xyz
 
 
-def _cost(poses: Pose, velocity: FloatArray, a: _Active) -> float:
+def _weighted_squares(e: FloatArray, P: FloatArray) -> float:
     """The weighted sum of squared residuals ``sum e^T P e``."""
-    e, _ = _linearise(poses, velocity, a, jacobians=False)
-    return float(np.einsum("ki,kij,kj->", e, a.P, e))
+    return float(np.einsum("ki,kij,kj->", e, P, e))
 
 
 def _components(i: np.ndarray, j: np.ndarray, links: np.ndarray, n: int) -> np.ndarray:
@@ -288,15 +292,21 @@ def adjust_block(
     # One pattern (that of all observations) and one symbolic factorisation for every iteration
     # and every round of the adjustment.
     normal = NormalEquations(int(free_index.max()) + 1, _columns(everything, free_index))
+    # The information's eigenvectors, once: a weight per kind only scales the eigenvalues.
+    eigen = np.linalg.eigh(0.5 * (everything.P + np.transpose(everything.P, (0, 2, 1))))
     progress.start("block adjustment", total=None, unit="iterations")
     while True:
         try:
             if last_round:
                 _check_datum(links.subset(active), fixed, n)
             a = _subset(everything, active, weights)
-            state, iterations, factor, converged = _levenberg_marquardt(start, a, fixed, free_index, normal, config,
-                                                                         progress)
-            tests, omega, redundancy, Qxx_blocks = _test_observations(state, a, links, fixed, free_index, factor)
+            state, iterations, factor, converged, linearised = _levenberg_marquardt(start, a, fixed, free_index,
+                                                                                    normal, config, progress)
+            w_info, V_info = eigen
+            eig = (w_info[a.idx] * _weight_of(a.kinds, weights)[:, None], V_info[a.idx])
+            tests, omega, redundancy, Qxx_blocks = _test_observations(state, a, links, fixed, free_index, factor,
+                                                                      linearised, eig)
+            del linearised
         except EstimationError:
             if not last_round:
                 raise
@@ -477,48 +487,52 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
     at the solution (for the covariances) and whether it converged."""
     poses, velocity = start
     selection = normal.select(_columns(a, free_index))
-    cost = _cost(poses, velocity, a)
+    # Each trial is linearised with its Jacobians: an accepted one (nearly all) is where the next
+    # iteration starts, so its residuals are not computed twice.
+    e, J = _linearise(poses, velocity, a)
+    cost = _weighted_squares(e, a.P)
     factor = None
     converged = damped = False
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007  (the count is returned)
-        e, J = _linearise(poses, velocity, a)
         blocks, b = normal.assemble(selection, J, a.P, e)
-        del e, J
         lam = 0.0
         while True:
             damped = lam > 0.0
             factor = normal.factorize(blocks, lam)
             dx = factor.solve(b).reshape(-1, 6)
             trial = _stepped(poses, velocity, fixed, dx)
-            trial_cost = _cost(*trial, a)
+            trial_e, trial_J = _linearise(*trial, a)
+            trial_cost = _weighted_squares(trial_e, a.P)
             if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + 1e-12):
                 break
             lam = _FIRST_DAMPING if lam == 0.0 else 10.0 * lam
             if lam > _MAX_DAMPING:
                 break
+        del blocks
         progress.advance(1)
         if lam > _MAX_DAMPING:  # no step lowers the cost: at a minimum if the gradient vanishes there
             converged = bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
             break
         (poses, velocity), fell = trial, cost - trial_cost
-        cost = trial_cost
+        e, J, cost = trial_e, trial_J, trial_cost
         if np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
             converged = True
             break
     if not converged:
         log.info("block adjustment: no convergence after %d iterations", iterations)
     if damped:  # the covariances need the undamped normal matrix at the solution
-        e, J = _linearise(poses, velocity, a)
         factor = normal.factorize(normal.assemble(selection, J, a.P, e)[0])
-    return (poses, velocity), iterations, factor, converged
+    return (poses, velocity), iterations, factor, converged, (e, J)
 
 
-def _test_observations(state, a, links, fixed, free_index, factor):
+def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None):
     """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
-    vectorised over observations (each restricted to the directions its information determines)."""
+    vectorised over observations (each restricted to the directions its information determines).
+    ``linearised``: ``(e, J)`` at ``state`` if at hand; ``eig``: the eigenvalues and vectors of
+    ``a.P`` if at hand."""
     P = a.P
-    e, J = _linearise(*state, a)
+    e, J = _linearise(*state, a) if linearised is None else linearised
     cols = _columns(a, free_index)
     slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
     both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
@@ -541,7 +555,7 @@ def _test_observations(state, a, links, fixed, free_index, factor):
             cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
     del J, off
 
-    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1))))
+    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1)))) if eig is None else eig
     determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
     w = np.where(determined, w, 1.0)
     z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
@@ -558,7 +572,10 @@ def _test_observations(state, a, links, fixed, free_index, factor):
     r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
     del R_dir
     vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
-    statistic = np.einsum("ki,kij,kj->k", z, np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True), z)
+    # z^T Q_zz^+ z, the pseudo-inverse as numpy's pinv(rcond=1e-9, hermitian=True) forms it
+    s, U = np.linalg.eigh(Q_zz)
+    large = np.abs(s) > 1e-9 * np.max(np.abs(s), axis=1, keepdims=True)
+    statistic = np.sum(np.where(large, np.einsum("kai,ka->ki", U, z) ** 2 / np.where(large, s, 1.0), 0.0), axis=1)
     # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
     # positive (an unconverged state: the normal matrix is not its residuals' own).
     statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
