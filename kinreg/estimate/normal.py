@@ -68,12 +68,10 @@ class NormalEquations:
                 continue
             cs, ct = cols[rows, s], cols[rows, t]
             target = self.pattern.index(cs, ct)
-
-            def scatter(on: np.ndarray) -> sp.csr_matrix:
-                return sp.csr_matrix((np.ones(np.count_nonzero(on)), (target[on], rows[on])), shape=(n_blocks, k))
-
             flipped = (cs < ct) | ((cs == ct) & (s != t))
-            pairs.append(_SlotPair(s, t, scatter(cs >= ct), scatter(flipped) if flipped.any() else None))
+            direct = _scatter(target, rows, cs >= ct, (n_blocks, k))
+            turned = _scatter(target, rows, flipped, (n_blocks, k)) if flipped.any() else None
+            pairs.append(_SlotPair(s, t, direct, turned))
         return Selection(cols, slots, tuple(pairs))
 
     def assemble(self, selection: Selection, J: FloatArray, P: FloatArray,
@@ -105,6 +103,11 @@ class NormalEquations:
     def factorize(self, blocks: FloatArray, damping: float = 0.0) -> SparseFactor:
         """The factor of ``N`` (its diagonal raised by ``damping`` times itself)."""
         return self.pattern.factorize(blocks, damping)
+
+
+def _scatter(target: np.ndarray, rows: np.ndarray, on: np.ndarray, shape: tuple[int, int]) -> sp.csr_matrix:
+    """Ones at (target, rows) where ``on``: the sum of observations' blocks into pattern blocks."""
+    return sp.csr_matrix((np.ones(np.count_nonzero(on)), (target[on], rows[on])), shape=shape)
 
 
 def _slot_pairs(slots: int) -> list[tuple[int, int]]:
