@@ -50,10 +50,12 @@ class ObservationTests:
         # a rejected observation was not tested: no covariance of what it observes
         cov = [None if self.cov_adjusted is None or rejected else self.cov_adjusted[k]
                for k, rejected in enumerate(self.rejected.tolist())]
-        return [ObservationTest(*row[:10], min_redundancy=row[10], cov_adjusted=row[11]) for row in zip(
-            self.index.tolist(), [kinds[k] for k in self.kind.tolist()], self.i.tolist(), self.j.tolist(),
-            self.statistic.tolist(), self.dof.tolist(), self.redundancy.tolist(), self.normalised.tolist(),
-            self.rejected.tolist(), self.vtpv.tolist(), self.min_redundancy.tolist(), cov, strict=True)]
+        rows = zip(self.index.tolist(), [kinds[k] for k in self.kind.tolist()], self.i.tolist(), self.j.tolist(),
+                   self.statistic.tolist(), self.dof.tolist(), self.redundancy.tolist(), self.normalised.tolist(),
+                   self.rejected.tolist(), self.vtpv.tolist(), self.min_redundancy.tolist(), cov, strict=True)
+        return [ObservationTest(index, kind, i, j, statistic, dof, redundancy, normalised, rejected, vtpv,
+                                min_redundancy=least, cov_adjusted=c)
+                for index, kind, i, j, statistic, dof, redundancy, normalised, rejected, vtpv, least, c in rows]
 
 
 def taken_back(last_round: list[int], observations: list[RelativeObservation], free_index: np.ndarray,
