@@ -89,17 +89,16 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     return _subset(_gather(observations, vnode), active, weights)
 
 
-def _gather(observations: list[RelativeObservation], vnode: np.ndarray) -> _Active:
+def _gather(observations: list[RelativeObservation], vnode: np.ndarray, links: _Links | None = None) -> _Active:
     """All observations as arrays (``P`` their own information, unweighted); once per adjustment,
-    :func:`_subset` takes the active ones from it."""
+    :func:`_subset` takes the active ones from it. ``links``: their :meth:`_Links.of` if at hand."""
     obs = observations
     count = len(obs)
-    kinds = np.array([o.kind.value for o in obs])
+    links = _Links.of(obs) if links is None else links
+    kinds, i, j = links.kind, links.i, links.j
     drift = kinds == ObservationKind.DRIFT.value
     station = kinds == ObservationKind.STATION.value
     point = kinds == ObservationKind.POINT.value
-    i = np.fromiter((o.i for o in obs), dtype=int, count=count)
-    j = np.fromiter((o.j for o in obs), dtype=int, count=count)
     nodes = -np.ones((count, 3), dtype=int)
     nodes[point, 0] = i[point]
     nodes[point, 1] = j[point]
@@ -110,7 +109,7 @@ def _gather(observations: list[RelativeObservation], vnode: np.ndarray) -> _Acti
     nodes[trajectory, 2] = vnode[i[trajectory]]
     nodes[drift, 0] = vnode[i[drift]]
     nodes[drift, 1] = np.where(j[drift] >= 0, vnode[np.maximum(j[drift], 0)], -1)
-    P = np.stack([o.info for o in obs])
+    P = np.array([o.info for o in obs], dtype=float).reshape(-1, 6, 6)  # np.array: 3x np.stack's speed here
     levers = _optional([o.levers_m for o in obs], (2, 3))
     share = np.fromiter((o.share if o.j >= 0 else 0.0 for o in obs), dtype=float, count=count)
     decays = [o.decay for o in obs]
@@ -120,8 +119,10 @@ def _gather(observations: list[RelativeObservation], vnode: np.ndarray) -> _Acti
     decay[scalar] = np.array([decays[k] for k in scalar], dtype=float).reshape(-1, 1)
     if per_axis:
         decay[per_axis] = np.array([np.broadcast_to(decays[k], (6,)) for k in per_axis])
-    return _Active(np.arange(count), kinds, nodes, pose, station, point, levers, share, Pose.stack([o.Z for o in obs]),
-                   P, np.fromiter((o.dt_s for o in obs), dtype=float, count=count), decay,
+    Z = Pose(np.array([o.Z.quat_wxyz for o in obs], dtype=float).reshape(-1, 4),
+             np.array([o.Z.t_xyz for o in obs], dtype=float).reshape(-1, 3))
+    return _Active(np.arange(count), kinds, nodes, pose, station, point, levers, share, Z, P,
+                   np.fromiter((o.dt_s for o in obs), dtype=float, count=count), decay,
                    np.fromiter((o.coupling for o in obs), dtype=float, count=count),
                    _optional([o.step_obj for o in obs], (3,)))
 
@@ -286,7 +287,7 @@ def adjust_block(
     observations = [_moved(o, -origin) for o in observations]
     vnode = velocity_nodes(observations, n)
     start = (_moved_poses(poses_initial, -origin), np.zeros((int(np.count_nonzero(vnode >= 0)), 6)))
-    everything = _gather(observations, vnode)
+    everything = _gather(observations, vnode, links)
     kinds = everything.kinds
     free_index = _free_index(fixed, len(start[1]))
     # One pattern (that of all observations) and one symbolic factorisation for every iteration
@@ -541,19 +542,29 @@ def _test_observations(state, a, links, fixed, free_index, factor, linearised=No
     diag, off = selected_inverse(None, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
 
     offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
+    # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
+    # small-matrix products are several times faster so than on gathered or transposed views.
+    J_s = {s: np.ascontiguousarray(J[:, s]) for s in range(3) if (cols[:, s] >= 0).any()}
+    Q = None
+    J_sT = {s: np.ascontiguousarray(np.transpose(Js, (0, 2, 1))) for s, Js in J_s.items()}
     JQJ = np.zeros((len(a.idx), 6, 6))
     for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
         for s in group:
-            ok = cols[:, s] >= 0
-            JQJ[ok] += J[ok, s] @ diag[cols[ok, s]] @ np.transpose(J[ok, s], (0, 2, 1))
+            if s in J_s:
+                ok = cols[:, s] >= 0
+                Q = np.zeros_like(JQJ)
+                Q[ok] = diag[cols[ok, s]]
+                JQJ += J_s[s] @ Q @ J_sT[s]
         for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
-            if t not in group:
+            if t not in group or not ok.any():
                 continue
-            cross = J[ok, s] @ off[offsets[m]:offsets[m + 1]] @ np.transpose(J[ok, t], (0, 2, 1))
-            JQJ[ok] += cross + np.transpose(cross, (0, 2, 1))
+            Q = np.zeros_like(JQJ)
+            Q[ok] = off[offsets[m]:offsets[m + 1]]
+            cross = J_s[s] @ Q @ J_sT[t]
+            JQJ += cross + np.transpose(cross, (0, 2, 1))
         if group == (0, 1):
             cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
-    del J, off
+    del J_s, J_sT, Q, J, off
 
     w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1)))) if eig is None else eig
     determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
