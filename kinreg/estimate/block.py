@@ -31,8 +31,13 @@ from scipy import stats
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
 from kinreg.estimate.normal import NormalEquations
-from kinreg.estimate.snooping import ObservationTests, taken_back, variance_components, worst_outliers
-from kinreg.estimate.sparse import selected_inverse
+from kinreg.estimate.snooping import (
+    ObservationTests,
+    observation_tests,
+    taken_back,
+    variance_components,
+    worst_outliers,
+)
 from kinreg.geometry import FloatArray, Pose, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
@@ -528,75 +533,17 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
 
 
 def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None):
-    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
-    vectorised over observations (each restricted to the directions its information determines).
-    ``linearised``: ``(e, J)`` at ``state`` if at hand; ``eig``: the eigenvalues and vectors of
-    ``a.P`` if at hand."""
-    P = a.P
+    """The observations' tests (:func:`~kinreg.estimate.snooping.observation_tests`) at ``state``,
+    the total e^T P e and redundancy, and the stations' covariance blocks. ``linearised``: ``(e, J)``
+    at ``state`` if at hand; ``eig``: the eigenvalues and vectors of ``a.P`` if at hand."""
     e, J = _linearise(*state, a) if linearised is None else linearised
-    cols = _columns(a, free_index)
-    slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
-    both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
-    pairs = np.concatenate([np.column_stack([cols[ok, s], cols[ok, t]]) for (s, t), ok in zip(slot_pairs, both,
-                                                                                              strict=True)])
-    diag, off = selected_inverse(None, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
-
-    offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
-    # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
-    # small-matrix products are several times faster so than on gathered or transposed views.
-    J_s = {s: np.ascontiguousarray(J[:, s]) for s in range(3) if (cols[:, s] >= 0).any()}
-    Q = None
-    J_sT = {s: np.ascontiguousarray(np.transpose(Js, (0, 2, 1))) for s, Js in J_s.items()}
-    JQJ = np.zeros((len(a.idx), 6, 6))
-    for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
-        for s in group:
-            if s in J_s:
-                ok = cols[:, s] >= 0
-                Q = np.zeros_like(JQJ)
-                Q[ok] = diag[cols[ok, s]]
-                JQJ += J_s[s] @ Q @ J_sT[s]
-        for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
-            if t not in group or not ok.any():
-                continue
-            Q = np.zeros_like(JQJ)
-            Q[ok] = off[offsets[m]:offsets[m + 1]]
-            cross = J_s[s] @ Q @ J_sT[t]
-            JQJ += cross + np.transpose(cross, (0, 2, 1))
-        if group == (0, 1):
-            cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
-    del J_s, J_sT, Q, J, off
-
-    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1)))) if eig is None else eig
-    determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
-    w = np.where(determined, w, 1.0)
-    z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
-    VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
-    del JQJ, V
-    mask2 = determined[:, :, None] & determined[:, None, :]
-    Q_zz = np.where(mask2, np.eye(6) / w[:, :, None] - VJV, np.eye(6) * (~mask2))
-    dof = determined.sum(axis=1)
-    r_k = np.sum(np.where(determined, 1.0 - w * np.diagonal(VJV, axis1=1, axis2=2), 0.0), axis=1)
-    # Redundancy per direction: eigenvalues of I - W^1/2 V^T J Qxx J^T V W^1/2 (determined part).
-    sw = np.where(determined, np.sqrt(w), 0.0)
-    R_dir = np.eye(6) * determined[:, :, None] - sw[:, :, None] * VJV * sw[:, None, :]
-    del VJV
-    r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
-    del R_dir
-    vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
-    # z^T Q_zz^+ z, the pseudo-inverse as numpy's pinv(rcond=1e-9, hermitian=True) forms it
-    s, U = np.linalg.eigh(Q_zz)
-    large = np.abs(s) > 1e-9 * np.max(np.abs(s), axis=1, keepdims=True)
-    statistic = np.sum(np.where(large, np.einsum("kai,ka->ki", U, z) ** 2 / np.where(large, s, 1.0), 0.0), axis=1)
-    # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
-    # positive (an unconverged state: the normal matrix is not its residuals' own).
-    statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
+    figures, diag = observation_tests(e, J, a.P, _columns(a, free_index), factor, eig)
+    statistic, dof, r_k, normalised, vtpv, least, cov_adjusted = figures
     keep = dof > 0
-    # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
-    normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
     index = a.idx[keep]
     tests = ObservationTests(index, a.kinds[keep], links.i[index], links.j[index], statistic[keep], dof[keep],
                              r_k[keep], normalised[keep], np.zeros(len(index), dtype=bool), vtpv[keep],
-                             r_dir[keep, 0], cov_adjusted[keep])
+                             least[keep], cov_adjusted[keep])
     n_stations = int(np.count_nonzero(~fixed))
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag[:n_stations]
 

@@ -10,6 +10,8 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats
 
+from kinreg.estimate.sparse import SparseFactor, selected_inverse
+from kinreg.geometry import FloatArray
 from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
 
 
@@ -76,6 +78,77 @@ def taken_back(last_round: list[int], observations: list[RelativeObservation], f
 _MIN_DIRECTION_REDUNDANCY = 0.02
 # A rejection round after which some station's position variance grows by this factor is undone.
 _MAX_VARIANCE_GROWTH = 100.0
+
+
+def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndarray, factor: SparseFactor,
+                      eig: tuple[FloatArray, FloatArray] | None = None) -> tuple[tuple[np.ndarray, ...], FloatArray]:
+    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
+    vectorised over observations (each restricted to the directions its information determines).
+
+    ``e`` (k, 6) residuals, ``J`` (k, slots, 6, 6) their Jacobians, ``P`` (k, 6, 6) weights,
+    ``cols`` (k, slots) the unknown blocks of the slots (-1: none), ``factor`` of the normal matrix
+    (block ordered), ``eig`` the eigenvalues and vectors of ``P`` if at hand. Returns
+    ``(statistic, dof, redundancy, normalised, vtpv, min_redundancy, cov_adjusted)`` (k,) each (the
+    last (k, 6, 6): of the relative pose from the first two slots) and the diagonal blocks of Qxx.
+    """
+    slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
+    both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
+    pairs = np.concatenate([np.column_stack([cols[ok, s], cols[ok, t]]) for (s, t), ok in zip(slot_pairs, both,
+                                                                                              strict=True)])
+    diag, off = selected_inverse(None, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
+
+    offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
+    # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
+    # small-matrix products are several times faster so than on gathered or transposed views.
+    J_s = {s: np.ascontiguousarray(J[:, s]) for s in range(cols.shape[1]) if (cols[:, s] >= 0).any()}
+    Q = None
+    J_sT = {s: np.ascontiguousarray(np.transpose(Js, (0, 2, 1))) for s, Js in J_s.items()}
+    JQJ = np.zeros((len(e), 6, 6))
+    for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
+        for s in group:
+            if s in J_s:
+                ok = cols[:, s] >= 0
+                Q = np.zeros_like(JQJ)
+                Q[ok] = diag[cols[ok, s]]
+                JQJ += J_s[s] @ Q @ J_sT[s]
+        for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
+            if t not in group or not ok.any():
+                continue
+            Q = np.zeros_like(JQJ)
+            Q[ok] = off[offsets[m]:offsets[m + 1]]
+            cross = J_s[s] @ Q @ J_sT[t]
+            JQJ += cross + np.transpose(cross, (0, 2, 1))
+        if group == (0, 1):
+            cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
+    del J_s, J_sT, Q, J, off
+
+    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1)))) if eig is None else eig
+    determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
+    w = np.where(determined, w, 1.0)
+    z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
+    VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
+    del JQJ, V
+    mask2 = determined[:, :, None] & determined[:, None, :]
+    Q_zz = np.where(mask2, np.eye(6) / w[:, :, None] - VJV, np.eye(6) * (~mask2))
+    dof = determined.sum(axis=1)
+    r_k = np.sum(np.where(determined, 1.0 - w * np.diagonal(VJV, axis1=1, axis2=2), 0.0), axis=1)
+    # Redundancy per direction: eigenvalues of I - W^1/2 V^T J Qxx J^T V W^1/2 (determined part).
+    sw = np.where(determined, np.sqrt(w), 0.0)
+    R_dir = np.eye(6) * determined[:, :, None] - sw[:, :, None] * VJV * sw[:, None, :]
+    del VJV
+    r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
+    del R_dir
+    vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
+    # z^T Q_zz^+ z, the pseudo-inverse as numpy's pinv(rcond=1e-9, hermitian=True) forms it
+    q, U = np.linalg.eigh(Q_zz)
+    large = np.abs(q) > 1e-9 * np.max(np.abs(q), axis=1, keepdims=True)
+    statistic = np.sum(np.where(large, np.einsum("kai,ka->ki", U, z) ** 2 / np.where(large, q, 1.0), 0.0), axis=1)
+    # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
+    # positive (an unconverged state: the normal matrix is not its residuals' own).
+    statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
+    # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
+    normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
+    return (statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted), diag
 
 
 def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
