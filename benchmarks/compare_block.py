@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def make_networks(path: Path) -> None:
-    sys.path.insert(0, str(REPO / "tests"))
+    sys.path[:0] = [str(REPO), str(REPO / "tests")]  # this tree's kinreg and tests build the networks
     from test_block import network
     from test_block_normal import _every_kind
 
