@@ -7,12 +7,24 @@
    its 4 successors linked (some links rank 5) and loop closures every 50 stations.
 
 Usage: python benchmarks/bench_network.py [--stations 231 20000] [--out benchmarks/network.json]
+
+3. ``--block-only``: only (2), each adjustment in a child process of its own (its peak RSS its own),
+   the network pickled to ``--cache DIR`` on first use (100,000 stations take minutes to
+   simulate), and with ``--trees A B`` alternately with the kinreg of each source tree (e.g. an
+   exported ``main`` against this one, ``--repeat`` times): an A/B in the same conditions.
+
+   python benchmarks/bench_network.py --block-only --stations 100000 --cache /tmp/kinreg-bench \
+       --trees /tmp/main-tree . --repeat 2 --out benchmarks/block_city_scale.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import pickle
+import resource
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -89,31 +101,84 @@ def synthetic_network(n: int, seed: int = 0):
     return truth, initial, obs
 
 
-def bench_block(n: int) -> dict:
+def cached_network(n: int, cache: Path | None):
+    """:func:`synthetic_network` ``(n)``, pickled into ``cache`` (a folder) on first use."""
+    path = None if cache is None else cache / f"network_{n}.pkl"
+    if path is not None and path.exists():
+        with path.open("rb") as f:
+            return pickle.load(f)
+    network = synthetic_network(n)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with path.open("wb") as f:
+            pickle.dump(network, f, protocol=5)
+    return network
+
+
+def bench_block(n: int, cache: Path | None = None) -> dict:
     from kinreg.config import BlockConfig
     from kinreg.estimate.block import adjust_block
     from kinreg.estimate.sparse import HAVE_CHOLMOD
 
-    truth, initial, obs = synthetic_network(n)
+    truth, initial, obs = cached_network(n, cache)
     fixed = np.zeros(n, dtype=bool)
     fixed[0] = True
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     res = adjust_block(initial, obs, fixed, BlockConfig())
     wall = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     err = truth.inverse().compose(res.poses).log()[1:]
     sig = np.sqrt(np.diagonal(res.cov_xi, axis1=1, axis2=2))[1:]
-    return {"stations": n, "observations": len(obs), "seconds": wall, "iterations": res.iterations,
-            "sigma0": res.sigma0, "normalised_error_rms": float(np.sqrt(np.mean((err / sig) ** 2))),
-            "cholmod": HAVE_CHOLMOD}
+    normalised = np.array([t.normalised for t in res.tests])
+    return {"stations": n, "observations": len(obs), "seconds": wall,
+            "cpu_seconds": (cpu1.ru_utime + cpu1.ru_stime) - (cpu0.ru_utime + cpu0.ru_stime),
+            "peak_rss_gb": cpu1.ru_maxrss / 1e6, "iterations": res.iterations,
+            "sigma0": res.sigma0, "redundancy": res.redundancy,
+            "rejected": int(sum(t.rejected for t in res.tests)),
+            "normalised_residual_rms": float(np.sqrt(np.nanmean(normalised**2))),
+            "normalised_error_rms": float(np.sqrt(np.mean((err / sig) ** 2))),
+            "station_sigma_last_mm": (1e3 * sig[-1, :3]).tolist(),
+            "cholmod": HAVE_CHOLMOD, "load_average": os.getloadavg()}
+
+
+def bench_block_trees(stations: list[int], cache: Path | None, trees: list[Path], repeat: int) -> list[dict]:
+    """Each network with the kinreg of each tree, alternating, each run in a child process."""
+    out = []
+    for n in stations:
+        cached_network(n, cache)  # simulated once, outside the timed children
+        for round_ in range(repeat):
+            for tree in trees:
+                env = dict(os.environ, PYTHONPATH=str(tree.resolve()))
+                child = [sys.executable, str(Path(__file__).resolve()), "--one-block", str(n)]
+                child += [] if cache is None else ["--cache", str(cache.resolve())]
+                res = json.loads(subprocess.run(child, check=True, capture_output=True, text=True, env=env,
+                                                cwd=tree).stdout.splitlines()[-1])
+                res.update(tree=str(tree), round=round_)
+                print(json.dumps(res), flush=True)
+                out.append(res)
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--stations", type=int, nargs="+", default=[231, 20_000])
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "network.json")
+    parser.add_argument("--block-only", action="store_true", help="only the block adjustments, in child processes")
+    parser.add_argument("--cache", type=Path, help="folder for the pickled synthetic networks")
+    parser.add_argument("--trees", type=Path, nargs="+", default=[REPO], help="kinreg source trees to compare")
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--one-block", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
-    result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "links": bench_links(),
-              "block": [bench_block(n) for n in args.stations]}
+    if args.one_block:
+        print(json.dumps(bench_block(args.one_block, args.cache)))
+        return
+    if args.block_only:
+        result = {"date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join(sys.argv), "cpus": os.cpu_count(),
+                  "block": bench_block_trees(args.stations, args.cache, args.trees, args.repeat)}
+    else:
+        result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "links": bench_links(),
+                  "block": [bench_block(n, args.cache) for n in args.stations]}
     print(json.dumps(result, indent=1))
     args.out.write_text(json.dumps(result, indent=1) + "\n")
 

@@ -30,11 +30,17 @@ from scipy import stats
 
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
-from kinreg.estimate.snooping import taken_back, variance_components, worst_outliers
-from kinreg.estimate.sparse import factorize, selected_inverse
+from kinreg.estimate.normal import NormalEquations
+from kinreg.estimate.snooping import (
+    ObservationTests,
+    observation_tests,
+    taken_back,
+    variance_components,
+    worst_outliers,
+)
 from kinreg.geometry import FloatArray, Pose, skew
 from kinreg.progress import NullProgress, Progress
-from kinreg.types import BlockResult, ObservationKind, ObservationTest, RelativeObservation
+from kinreg.types import BlockResult, ObservationKind, RelativeObservation
 
 log = logging.getLogger(__name__)
 
@@ -85,15 +91,20 @@ def velocity_nodes(observations: list[RelativeObservation], n: int) -> np.ndarra
 
 def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: np.ndarray,
             weights: dict[str, float]) -> _Active:
-    idx = np.flatnonzero(active)
-    obs = [observations[k] for k in idx]
-    kinds = np.array([o.kind.value for o in obs])
+    return _subset(_gather(observations, vnode), active, weights)
+
+
+def _gather(observations: list[RelativeObservation], vnode: np.ndarray, links: _Links | None = None) -> _Active:
+    """All observations as arrays (``P`` their own information, unweighted); once per adjustment,
+    :func:`_subset` takes the active ones from it. ``links``: their :meth:`_Links.of` if at hand."""
+    obs = observations
+    count = len(obs)
+    links = _Links.of(obs) if links is None else links
+    kinds, i, j = links.kind, links.i, links.j
     drift = kinds == ObservationKind.DRIFT.value
     station = kinds == ObservationKind.STATION.value
     point = kinds == ObservationKind.POINT.value
-    i = np.array([o.i for o in obs], dtype=int)
-    j = np.array([o.j for o in obs], dtype=int)
-    nodes = -np.ones((len(obs), 3), dtype=int)
+    nodes = -np.ones((count, 3), dtype=int)
     nodes[point, 0] = i[point]
     nodes[point, 1] = j[point]
     pose = ~drift & ~point
@@ -103,14 +114,45 @@ def _arrays(observations: list[RelativeObservation], active: np.ndarray, vnode: 
     nodes[trajectory, 2] = vnode[i[trajectory]]
     nodes[drift, 0] = vnode[i[drift]]
     nodes[drift, 1] = np.where(j[drift] >= 0, vnode[np.maximum(j[drift], 0)], -1)
-    P = np.stack([o.info for o in obs]) * np.array([weights[k] for k in kinds])[:, None, None]
-    levers = np.array([np.zeros((2, 3)) if o.levers_m is None else o.levers_m for o in obs]).reshape(-1, 2, 3)
-    share = np.array([o.share if o.j >= 0 else 0.0 for o in obs]).reshape(-1)
-    return _Active(idx, kinds, nodes, pose, station, point, levers, share, Pose.stack([o.Z for o in obs]), P,
-                   np.array([o.dt_s for o in obs]),
-                   np.array([np.broadcast_to(o.decay, (6,)) for o in obs]).reshape(-1, 6),
-                   np.array([o.coupling for o in obs]),
-                   np.array([np.zeros(3) if o.step_obj is None else o.step_obj for o in obs]).reshape(-1, 3))
+    P = np.array([o.info for o in obs], dtype=float).reshape(-1, 6, 6)  # np.array: 3x np.stack's speed here
+    levers = _optional([o.levers_m for o in obs], (2, 3))
+    share = np.fromiter((o.share if o.j >= 0 else 0.0 for o in obs), dtype=float, count=count)
+    decays = [o.decay for o in obs]
+    scalar = [k for k, d in enumerate(decays) if isinstance(d, (float, int))]
+    per_axis = [k for k, d in enumerate(decays) if not isinstance(d, (float, int))]
+    decay = np.zeros((count, 6))
+    decay[scalar] = np.array([decays[k] for k in scalar], dtype=float).reshape(-1, 1)
+    if per_axis:
+        decay[per_axis] = np.array([np.broadcast_to(decays[k], (6,)) for k in per_axis])
+    Z = Pose(np.array([o.Z.quat_wxyz for o in obs], dtype=float).reshape(-1, 4),
+             np.array([o.Z.t_xyz for o in obs], dtype=float).reshape(-1, 3))
+    return _Active(np.arange(count), kinds, nodes, pose, station, point, levers, share, Z, P,
+                   np.fromiter((o.dt_s for o in obs), dtype=float, count=count), decay,
+                   np.fromiter((o.coupling for o in obs), dtype=float, count=count),
+                   _optional([o.step_obj for o in obs], (3,)))
+
+
+def _optional(values: list, shape: tuple[int, ...]) -> FloatArray:
+    """Per observation an optional array of ``shape``, zeros where ``None``."""
+    out = np.zeros((len(values), *shape))
+    given = [k for k, v in enumerate(values) if v is not None]
+    if given:
+        out[given] = np.array([values[k] for k in given]).reshape(-1, *shape)
+    return out
+
+
+def _subset(a: _Active, active: np.ndarray, weights: dict[str, float]) -> _Active:
+    """The active observations of :func:`_gather`'s arrays, ``P`` weighted per kind."""
+    sel = np.flatnonzero(active)
+    parts = {f.name: getattr(a, f.name)[sel] for f in dataclasses.fields(a)}
+    parts["P"] = parts["P"] * _weight_of(parts["kinds"], weights)[:, None, None]
+    return _Active(**parts)
+
+
+def _weight_of(kinds: np.ndarray, weights: dict[str, float]) -> FloatArray:
+    """Per observation the weight of its kind."""
+    present, kind_of = np.unique(kinds, return_inverse=True)
+    return np.array([weights[k] for k in present], dtype=float)[kind_of.reshape(-1)]
 
 
 def _to_station_axes(R: FloatArray) -> FloatArray:
@@ -200,48 +242,17 @@ def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: F
     e[q, :3] = predicted - a.Z[q].t_xyz
 
 
-def _cost(poses: Pose, velocity: FloatArray, a: _Active) -> float:
+def _weighted_squares(e: FloatArray, P: FloatArray) -> float:
     """The weighted sum of squared residuals ``sum e^T P e``."""
-    e, _ = _linearise(poses, velocity, a, jacobians=False)
-    return float(np.einsum("ki,kij,kj->", e, a.P, e))
+    return float(np.einsum("ki,kij,kj->", e, P, e))
 
 
-def _assemble(n_free: int, cols: np.ndarray, J: FloatArray, P: FloatArray,
-              e: FloatArray) -> tuple[sp.csc_matrix, FloatArray]:
-    """Normal matrix (6 n_free square, sparse) and right-hand side from per-observation blocks.
-
-    ``cols`` (k, slots) are the unknown-block indices of each observation's nodes (-1: fixed or
-    absent), ``J`` (k, slots, 6, 6) its Jacobians. Vectorised COO assembly; duplicates are summed
-    by the sparse constructor."""
-    JT_P = np.transpose(J, (0, 1, 3, 2)) @ P[:, None]
-    rows, columns, vals = [], [], []
-    r6 = np.arange(6)
-    size = 6 * n_free
-    b = np.zeros(size)
-    slots = cols.shape[1]
-    for s in range(slots):
-        for t in range(slots):
-            ok = (cols[:, s] >= 0) & (cols[:, t] >= 0)
-            if not ok.any():
-                continue
-            bi, bj = cols[ok, s], cols[ok, t]
-            rows.append((6 * bi[:, None, None] + r6[None, :, None]).repeat(6, axis=2).ravel())
-            columns.append((6 * bj[:, None, None] + r6[None, None, :]).repeat(6, axis=1).ravel())
-            vals.append((JT_P[ok, s] @ J[ok, t]).ravel())
-        ok = cols[:, s] >= 0
-        g = (JT_P[ok, s] @ e[ok][:, :, None])[:, :, 0]
-        np.add.at(b, (6 * cols[ok, s, None] + r6[None, :]).ravel(), -g.ravel())
-    N = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(columns))), shape=(size, size))
-    return N, b
-
-
-def _components(observations: list[RelativeObservation]) -> np.ndarray:
-    """Connected components of the station graph (label per station)."""
+def _components(i: np.ndarray, j: np.ndarray, links: np.ndarray, n: int) -> np.ndarray:
+    """Connected components of the station graph (label per station): stations ``i[links]`` and
+    ``j[links]`` are linked."""
     from scipy.sparse.csgraph import connected_components
 
-    n = 1 + max(max(o.i, o.j) for o in observations)
-    pairs = np.array([(o.i, o.j) for o in observations
-                      if o.j >= 0 and o.rank > 0 and o.kind is not ObservationKind.DRIFT], dtype=int).reshape(-1, 2)
+    pairs = np.column_stack([i[links], j[links]])
     graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     return connected_components(graph, directed=False)[1]
 
@@ -265,10 +276,10 @@ def adjust_block(
     fixed = np.asarray(fixed, dtype=bool)
     if not fixed.any() and not any(o.kind in (ObservationKind.STATION, ObservationKind.POINT) for o in observations):
         raise EstimationError("no datum: fix at least one station or observe station poses directly")
-    _check_datum(observations, fixed, n)
+    links = _Links.of(observations)
+    _check_datum(links, fixed, n)
 
     active = np.ones(len(observations), dtype=bool)
-    kinds = np.array([o.kind.value for o in observations])
     weights = {k.value: 1.0 for k in ObservationKind}
     rejected_order: list[int] = []
     last_round: list[int] = []  # rejected in the previous round
@@ -281,15 +292,27 @@ def adjust_block(
     observations = [_moved(o, -origin) for o in observations]
     vnode = velocity_nodes(observations, n)
     start = (_moved_poses(poses_initial, -origin), np.zeros((int(np.count_nonzero(vnode >= 0)), 6)))
+    everything = _gather(observations, vnode, links)
+    kinds = everything.kinds
+    free_index = _free_index(fixed, len(start[1]))
+    # One pattern (that of all observations) and one symbolic factorisation for every iteration
+    # and every round of the adjustment.
+    normal = NormalEquations(int(free_index.max()) + 1, _columns(everything, free_index))
+    # The information's eigenvectors, once: a weight per kind only scales the eigenvalues.
+    eigen = np.linalg.eigh(0.5 * (everything.P + np.transpose(everything.P, (0, 2, 1))))
     progress.start("block adjustment", total=None, unit="iterations")
     while True:
         try:
             if last_round:
-                _check_datum([o for o, a in zip(observations, active, strict=True) if a], fixed, n)
-            state, iterations, factor, N, free_index, converged = _levenberg_marquardt(
-                start, observations, active, fixed, vnode, weights, config, progress)
-            tests, omega, redundancy, Qxx_blocks = _test_observations(state, observations, active, fixed, vnode,
-                                                                      free_index, weights, factor, N, config)
+                _check_datum(links.subset(active), fixed, n)
+            a = _subset(everything, active, weights)
+            state, iterations, factor, converged, linearised = _levenberg_marquardt(start, a, fixed, free_index,
+                                                                                    normal, config, progress)
+            w_info, V_info = eigen
+            eig = (w_info[a.idx] * _weight_of(a.kinds, weights)[:, None], V_info[a.idx])
+            tests, omega, redundancy, Qxx_blocks = _test_observations(state, a, links, fixed, free_index, factor,
+                                                                      linearised, eig)
+            del linearised
         except EstimationError:
             if not last_round:
                 raise
@@ -320,16 +343,17 @@ def adjust_block(
         # drift model is off, which the variance components answer. Rejecting it would leave the
         # direction it carries to the planes, which may not fix it (a corridor): the walks of the
         # accuracy matrix lost alternate links there and drifted by 10-20 mm.
-        candidates = [t for t in tests if t.index not in protected
-                      and t.kind not in (ObservationKind.TRAJECTORY, ObservationKind.DRIFT, ObservationKind.FRAME)]
-        worst = worst_outliers(candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
+        candidates = ~np.isin(tests.index, list(protected)) & ~np.isin(
+            tests.kind, [ObservationKind.TRAJECTORY.value, ObservationKind.DRIFT.value, ObservationKind.FRAME.value])
+        worst = worst_outliers(tests, candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
         if worst:
             for t in worst:
-                log.info("block: rejecting observation %d (%s %d-%d, statistic %.1f)", t.index, t.kind.value,
-                         t.i, t.j, t.statistic)
-                active[t.index] = False
-                rejected_order.append(t.index)
-                last_round.append(t.index)
+                index = int(tests.index[t])
+                log.info("block: rejecting observation %d (%s %d-%d, statistic %.1f)", index, tests.kind[t],
+                         tests.i[t], tests.j[t], tests.statistic[t])
+                active[index] = False
+                rejected_order.append(index)
+                last_round.append(index)
             variance_before = variance
             start = state  # warm start: the next round begins at the current solution
             continue
@@ -345,12 +369,6 @@ def adjust_block(
     cov_xi[~fixed] = Qxx_blocks * factor_scale
     R = poses.rotation_matrix
     cov_position = R @ cov_xi[:, :3, :3] @ np.transpose(R, (0, 2, 1))
-    all_tests = list(tests) + [
-        ObservationTest(k, observations[k].kind, observations[k].i, observations[k].j, float("nan"),
-                        observations[k].rank, 0.0, float("nan"), True)
-        for k in rejected_order
-    ]
-    all_tests.sort(key=lambda t: t.index)
     return BlockResult(
         poses=poses,
         poses_initial=poses_initial,
@@ -362,7 +380,7 @@ def adjust_block(
         global_test_passed=passed,
         variance_factor=factor_scale,
         iterations=iterations,
-        tests=tuple(all_tests),
+        tests=tuple(_with_rejected(tests, rejected_order, links).as_tests()),
         variance_components={k: 1.0 / w for k, w in weights.items() if (kinds == k).any()},
         failure=failure,
     )
@@ -394,18 +412,44 @@ def _moved(observation: RelativeObservation, shift: FloatArray) -> RelativeObser
     return dataclasses.replace(observation, Z=_moved_poses(observation.Z, shift))
 
 
+@dataclasses.dataclass(frozen=True)
+class _Links:
+    """What the datum check and the test list need of the observations, as arrays."""
+
+    kind: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    rank: np.ndarray
+
+    @classmethod
+    def of(cls, observations: list[RelativeObservation]) -> _Links:
+        count = len(observations)
+        return cls(np.array([o.kind.value for o in observations], dtype=str).reshape(-1),
+                   np.fromiter((o.i for o in observations), dtype=int, count=count),
+                   np.fromiter((o.j for o in observations), dtype=int, count=count),
+                   np.fromiter((o.rank for o in observations), dtype=int, count=count))
+
+    def subset(self, active: np.ndarray) -> _Links:
+        return _Links(self.kind[active], self.i[active], self.j[active], self.rank[active])
+
+
 def loose_parts(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> list[np.ndarray]:
     """Connected parts of the station graph with neither a fixed station nor a direct observation
     of a station (each part as its sorted station indices)."""
-    labels = _components(observations + [RelativeObservation(ObservationKind.PLANES, n - 1, n - 1,
-                                                               Pose.identity(), np.zeros((6, 6)), 0)])
-    anchored = set(labels[np.flatnonzero(fixed)])
-    anchored |= {labels[o.i] for o in observations if o.kind in (ObservationKind.STATION, ObservationKind.POINT)}
-    return [np.flatnonzero(labels == c) for c in sorted(set(labels) - anchored)]
+    return _loose_parts(_Links.of(observations), fixed, n)
 
 
-def _check_datum(observations: list[RelativeObservation], fixed: np.ndarray, n: int) -> None:
-    parts = loose_parts(observations, fixed, n)
+def _loose_parts(links: _Links, fixed: np.ndarray, n: int) -> list[np.ndarray]:
+    n = max(n, 1 + int(max(links.i.max(initial=-1), links.j.max(initial=-1))))
+    linking = (links.j >= 0) & (links.rank > 0) & (links.kind != ObservationKind.DRIFT.value)
+    labels = _components(links.i, links.j, linking, n)
+    direct = np.isin(links.kind, [ObservationKind.STATION.value, ObservationKind.POINT.value])
+    anchored = set(labels[np.flatnonzero(fixed)].tolist()) | set(labels[links.i[direct]].tolist())
+    return [np.flatnonzero(labels == c) for c in sorted(set(labels.tolist()) - anchored)]
+
+
+def _check_datum(links: _Links, fixed: np.ndarray, n: int) -> None:
+    parts = _loose_parts(links, fixed, n)
     if parts:
         described = ", ".join(f"stations {p[0]}-{p[-1]}" if len(p) > 1 else f"station {p[0]}" for p in parts[:5])
         raise EstimationError(
@@ -441,108 +485,81 @@ _FIRST_DAMPING = 1e-4
 _MAX_DAMPING = 1e8
 
 
-def _levenberg_marquardt(start, observations, active, fixed, vnode, weights, config, progress):
-    """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3) (the drift velocities are plain vectors).
-    Converged when no unknown changes by more than ``config.convergence`` or the cost falls by less
-    than ``config.cost_tolerance`` of itself; returns the state (poses, velocities), the
-    iterations, the factor and normal matrix of the undamped problem at the solution (for the
-    covariances), the node-to-unknown index and whether it converged."""
+def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
+    """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3) (the drift velocities are plain vectors)
+    over the active observations ``a``. Converged when no unknown changes by more than
+    ``config.convergence`` or the cost falls by less than ``config.cost_tolerance`` of itself;
+    returns the state (poses, velocities), the iterations, the factor of the undamped normal matrix
+    at the solution (for the covariances) and whether it converged."""
     poses, velocity = start
-    a = _arrays(observations, active, vnode, weights)
-    free_index = _free_index(fixed, len(velocity))
-    n_free = int(free_index.max()) + 1
-    cols = _columns(a, free_index)
-    cost = _cost(poses, velocity, a)
-    factor = N = None
+    selection = normal.select(_columns(a, free_index))
+    # Each trial is linearised with its Jacobians: an accepted one (nearly all) is where the next
+    # iteration starts, so its residuals are not computed twice.
+    e, J = _linearise(poses, velocity, a)
+    cost = _weighted_squares(e, a.P)
+    factor = None
     converged = damped = False
     iterations = 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007  (the count is returned)
-        e, J = _linearise(poses, velocity, a)
-        N, b = _assemble(n_free, cols, J, a.P, e)
+        blocks, b = normal.assemble(selection, J, a.P, e)
         lam = 0.0
         while True:
             damped = lam > 0.0
-            factor = factorize(N + lam * sp.diags(N.diagonal()) if damped else N)
+            factor = normal.factorize(blocks, lam)
             dx = factor.solve(b).reshape(-1, 6)
             trial = _stepped(poses, velocity, fixed, dx)
-            trial_cost = _cost(*trial, a)
+            trial_e, trial_J = _linearise(*trial, a)
+            trial_cost = _weighted_squares(trial_e, a.P)
             if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + 1e-12):
                 break
             lam = _FIRST_DAMPING if lam == 0.0 else 10.0 * lam
             if lam > _MAX_DAMPING:
                 break
+        del blocks
         progress.advance(1)
         if lam > _MAX_DAMPING:  # no step lowers the cost: at a minimum if the gradient vanishes there
             converged = bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
             break
         (poses, velocity), fell = trial, cost - trial_cost
-        cost = trial_cost
+        e, J, cost = trial_e, trial_J, trial_cost
         if np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
             converged = True
             break
     if not converged:
         log.info("block adjustment: no convergence after %d iterations", iterations)
     if damped:  # the covariances need the undamped normal matrix at the solution
-        e, J = _linearise(poses, velocity, a)
-        N, _ = _assemble(n_free, cols, J, a.P, e)
-        factor = factorize(N)
-    return (poses, velocity), iterations, factor, N, free_index, converged
+        factor = normal.factorize(normal.assemble(selection, J, a.P, e)[0])
+    return (poses, velocity), iterations, factor, converged, (e, J)
 
 
-def _test_observations(state, observations, active, fixed, vnode, free_index, weights, factor, N, config):
-    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
-    vectorised over observations (each restricted to the directions its information determines)."""
-    a = _arrays(observations, active, vnode, weights)
-    P = a.P
-    e, J = _linearise(*state, a)
-    cols = _columns(a, free_index)
-    slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
-    both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
-    pairs = np.concatenate([np.column_stack([cols[ok, s], cols[ok, t]]) for (s, t), ok in zip(slot_pairs, both,
-                                                                                              strict=True)])
-    diag, off = selected_inverse(N, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
-
-    offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
-    JQJ = np.zeros((len(a.idx), 6, 6))
-    for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
-        for s in group:
-            ok = cols[:, s] >= 0
-            JQJ[ok] += J[ok, s] @ diag[cols[ok, s]] @ np.transpose(J[ok, s], (0, 2, 1))
-        for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
-            if t not in group:
-                continue
-            cross = J[ok, s] @ off[offsets[m]:offsets[m + 1]] @ np.transpose(J[ok, t], (0, 2, 1))
-            JQJ[ok] += cross + np.transpose(cross, (0, 2, 1))
-        if group == (0, 1):
-            cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
-
-    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1))))
-    determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
-    w = np.where(determined, w, 1.0)
-    z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
-    VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
-    mask2 = determined[:, :, None] & determined[:, None, :]
-    Q_zz = np.where(mask2, np.eye(6) / w[:, :, None] - VJV, np.eye(6) * (~mask2))
-    dof = determined.sum(axis=1)
-    r_k = np.sum(np.where(determined, 1.0 - w * np.diagonal(VJV, axis1=1, axis2=2), 0.0), axis=1)
-    # Redundancy per direction: eigenvalues of I - W^1/2 V^T J Qxx J^T V W^1/2 (determined part).
-    sw = np.where(determined, np.sqrt(w), 0.0)
-    R_dir = np.eye(6) * determined[:, :, None] - sw[:, :, None] * VJV * sw[:, None, :]
-    r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
-    vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
-    statistic = np.einsum("ki,kij,kj->k", z, np.linalg.pinv(Q_zz, rcond=1e-9, hermitian=True), z)
-    # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
-    # positive (an unconverged state: the normal matrix is not its residuals' own).
-    statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
+def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None):
+    """The observations' tests (:func:`~kinreg.estimate.snooping.observation_tests`) at ``state``,
+    the total e^T P e and redundancy, and the stations' covariance blocks. ``linearised``: ``(e, J)``
+    at ``state`` if at hand; ``eig``: the eigenvalues and vectors of ``a.P`` if at hand."""
+    e, J = _linearise(*state, a) if linearised is None else linearised
+    figures, diag = observation_tests(e, J, a.P, _columns(a, free_index), factor, eig)
+    statistic, dof, r_k, normalised, vtpv, least, cov_adjusted = figures
     keep = dof > 0
-    # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
-    normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
-    tests = [
-        ObservationTest(int(a.idx[k]), ObservationKind(a.kinds[k]), int(observations[a.idx[k]].i),
-                        int(observations[a.idx[k]].j), float(statistic[k]), int(dof[k]), float(r_k[k]),
-                        float(normalised[k]), False, float(vtpv[k]),
-                        min_redundancy=float(r_dir[k, 0]), cov_adjusted=cov_adjusted[k])
-        for k in np.flatnonzero(keep)
-    ]
+    index = a.idx[keep]
+    tests = ObservationTests(index, a.kinds[keep], links.i[index], links.j[index], statistic[keep], dof[keep],
+                             r_k[keep], normalised[keep], np.zeros(len(index), dtype=bool), vtpv[keep],
+                             least[keep], cov_adjusted[keep])
     n_stations = int(np.count_nonzero(~fixed))
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag[:n_stations]
+
+
+def _with_rejected(tests: ObservationTests, rejected: list[int], links: _Links) -> ObservationTests:
+    """The tests and the rejected observations (untested), in the order of the observations."""
+    k = np.asarray(rejected, dtype=int)
+    index = np.concatenate([tests.index, k])
+    order = np.argsort(index, kind="stable")
+    nan = np.full(len(k), np.nan)
+    cov = np.concatenate([tests.cov_adjusted, np.zeros((len(k), 6, 6))])
+    merged = ObservationTests(
+        index[order], np.concatenate([tests.kind, links.kind[k]])[order],
+        np.concatenate([tests.i, links.i[k]])[order], np.concatenate([tests.j, links.j[k]])[order],
+        np.concatenate([tests.statistic, nan])[order], np.concatenate([tests.dof, links.rank[k]])[order],
+        np.concatenate([tests.redundancy, np.zeros(len(k))])[order], np.concatenate([tests.normalised, nan])[order],
+        np.concatenate([tests.rejected, np.ones(len(k), dtype=bool)])[order],
+        np.concatenate([tests.vtpv, nan])[order], np.concatenate([tests.min_redundancy, nan])[order], cov[order])
+    return merged

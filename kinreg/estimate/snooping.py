@@ -4,10 +4,60 @@ observation kind."""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+
 import numpy as np
 from scipy import stats
 
-from kinreg.types import ObservationTest, RelativeObservation
+from kinreg.estimate.sparse import SparseFactor, selected_inverse
+from kinreg.geometry import FloatArray
+from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationTests:
+    """The figures of :class:`~kinreg.types.ObservationTest` for many observations, as arrays (k,)
+    (``kind``: the :class:`~kinreg.types.ObservationKind` values; ``cov_adjusted`` (k, 6, 6))."""
+
+    index: np.ndarray
+    kind: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    statistic: np.ndarray
+    dof: np.ndarray
+    redundancy: np.ndarray
+    normalised: np.ndarray
+    rejected: np.ndarray
+    vtpv: np.ndarray
+    min_redundancy: np.ndarray
+    cov_adjusted: np.ndarray | None = None
+
+    @classmethod
+    def from_tests(cls, tests: Sequence[ObservationTest]) -> ObservationTests:
+        def column(name: str, dtype: type) -> np.ndarray:
+            return np.array([getattr(t, name) for t in tests], dtype=dtype).reshape(-1)
+
+        return cls(column("index", int), np.array([t.kind.value for t in tests], dtype=str).reshape(-1),
+                   column("i", int), column("j", int), column("statistic", float), column("dof", int),
+                   column("redundancy", float), column("normalised", float), column("rejected", bool),
+                   column("vtpv", float), column("min_redundancy", float))
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def as_tests(self) -> list[ObservationTest]:
+        """One :class:`ObservationTest` per observation, in the order of the arrays."""
+        kinds = {k.value: k for k in ObservationKind}
+        # a rejected observation was not tested: no covariance of what it observes
+        cov = [None if self.cov_adjusted is None or rejected else self.cov_adjusted[k]
+               for k, rejected in enumerate(self.rejected.tolist())]
+        rows = zip(self.index.tolist(), [kinds[k] for k in self.kind.tolist()], self.i.tolist(), self.j.tolist(),
+                   self.statistic.tolist(), self.dof.tolist(), self.redundancy.tolist(), self.normalised.tolist(),
+                   self.rejected.tolist(), self.vtpv.tolist(), self.min_redundancy.tolist(), cov, strict=True)
+        return [ObservationTest(index, kind, i, j, statistic, dof, redundancy, normalised, rejected, vtpv,
+                                min_redundancy=least, cov_adjusted=c)
+                for index, kind, i, j, statistic, dof, redundancy, normalised, rejected, vtpv, least, c in rows]
 
 
 def taken_back(last_round: list[int], observations: list[RelativeObservation], free_index: np.ndarray,
@@ -30,30 +80,109 @@ _MIN_DIRECTION_REDUNDANCY = 0.02
 _MAX_VARIANCE_GROWTH = 100.0
 
 
-def worst_outliers(tests: list[ObservationTest], alpha: float, budget: int) -> list[ObservationTest]:
-    """Observations to reject in one round: those above the critical value that are the worst
-    among all such observations touching either of their stations (one per neighbourhood, so
+def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndarray, factor: SparseFactor,
+                      eig: tuple[FloatArray, FloatArray] | None = None) -> tuple[tuple[np.ndarray, ...], FloatArray]:
+    """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
+    vectorised over observations (each restricted to the directions its information determines).
+
+    ``e`` (k, 6) residuals, ``J`` (k, slots, 6, 6) their Jacobians, ``P`` (k, 6, 6) weights,
+    ``cols`` (k, slots) the unknown blocks of the slots (-1: none), ``factor`` of the normal matrix
+    (block ordered), ``eig`` the eigenvalues and vectors of ``P`` if at hand. Returns
+    ``(statistic, dof, redundancy, normalised, vtpv, min_redundancy, cov_adjusted)`` (k,) each (the
+    last (k, 6, 6): of the relative pose from the first two slots) and the diagonal blocks of Qxx.
+    """
+    slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
+    both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
+    pairs = np.concatenate([np.column_stack([cols[ok, s], cols[ok, t]]) for (s, t), ok in zip(slot_pairs, both,
+                                                                                              strict=True)])
+    diag, off = selected_inverse(None, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
+
+    offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
+    # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
+    # small-matrix products are several times faster so than on gathered or transposed views.
+    J_s = {s: np.ascontiguousarray(J[:, s]) for s in range(cols.shape[1]) if (cols[:, s] >= 0).any()}
+    Q = None
+    J_sT = {s: np.ascontiguousarray(np.transpose(Js, (0, 2, 1))) for s, Js in J_s.items()}
+    JQJ = np.zeros((len(e), 6, 6))
+    for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
+        for s in group:
+            if s in J_s:
+                ok = cols[:, s] >= 0
+                Q = np.zeros_like(JQJ)
+                Q[ok] = diag[cols[ok, s]]
+                JQJ += J_s[s] @ Q @ J_sT[s]
+        for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
+            if t not in group or not ok.any():
+                continue
+            Q = np.zeros_like(JQJ)
+            Q[ok] = off[offsets[m]:offsets[m + 1]]
+            cross = J_s[s] @ Q @ J_sT[t]
+            JQJ += cross + np.transpose(cross, (0, 2, 1))
+        if group == (0, 1):
+            cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
+    del J_s, J_sT, Q, J, off
+
+    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1)))) if eig is None else eig
+    determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
+    w = np.where(determined, w, 1.0)
+    z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
+    VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
+    del JQJ, V
+    mask2 = determined[:, :, None] & determined[:, None, :]
+    Q_zz = np.where(mask2, np.eye(6) / w[:, :, None] - VJV, np.eye(6) * (~mask2))
+    dof = determined.sum(axis=1)
+    r_k = np.sum(np.where(determined, 1.0 - w * np.diagonal(VJV, axis1=1, axis2=2), 0.0), axis=1)
+    # Redundancy per direction: eigenvalues of I - W^1/2 V^T J Qxx J^T V W^1/2 (determined part).
+    sw = np.where(determined, np.sqrt(w), 0.0)
+    R_dir = np.eye(6) * determined[:, :, None] - sw[:, :, None] * VJV * sw[:, None, :]
+    del VJV
+    r_dir = np.linalg.eigvalsh(R_dir + np.eye(6) * (~determined)[:, :, None])  # undetermined: 1, never least
+    del R_dir
+    vtpv = np.sum(np.where(determined, w * z**2, 0.0), axis=1)
+    # z^T Q_zz^+ z, the pseudo-inverse as numpy's pinv(rcond=1e-9, hermitian=True) forms it
+    q, U = np.linalg.eigh(Q_zz)
+    large = np.abs(q) > 1e-9 * np.max(np.abs(q), axis=1, keepdims=True)
+    statistic = np.sum(np.where(large, np.einsum("kai,ka->ki", U, z) ** 2 / np.where(large, q, 1.0), 0.0), axis=1)
+    # An uncontrolled observation (redundancy ~ 0) cannot be tested, nor one whose cofactor is not
+    # positive (an unconverged state: the normal matrix is not its residuals' own).
+    statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
+    # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
+    normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
+    return (statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted), diag
+
+
+def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
+    """Positions in ``tests`` of the observations to reject in one round, worst first, among the
+    ``candidates`` (bool, k): those above the critical value that are the worst among all such
+    observations touching either of their stations (one per neighbourhood, so
     that an outlier's effect on its neighbours does not reject them too). An observation that
     alone determines some direction (its redundancy there below ``_MIN_DIRECTION_REDUNDANCY``) is
     never rejected: without it the network would be undetermined in that direction (a stretch
     whose planes leave it free, carried by the trajectory alone)."""
-    critical = {dof: stats.chi2.ppf(1.0 - alpha, dof) for dof in {t.dof for t in tests}}
-    bad = [t for t in tests if np.isfinite(t.statistic) and t.redundancy > 0.05 and t.statistic > critical[t.dof]
-           and not t.min_redundancy < _MIN_DIRECTION_REDUNDANCY]
-    bad.sort(key=lambda t: t.statistic / critical[t.dof], reverse=True)
+    dofs = np.unique(tests.dof[candidates])
+    critical = np.full(len(tests), np.inf)
+    for dof in dofs.tolist():
+        at = tests.dof == dof
+        critical[at] = stats.chi2.ppf(1.0 - alpha, dof)
+    with np.errstate(invalid="ignore"):
+        bad = (candidates & np.isfinite(tests.statistic) & (tests.redundancy > 0.05) & (tests.statistic > critical)
+               & ~(tests.min_redundancy < _MIN_DIRECTION_REDUNDANCY))
+    bad = np.flatnonzero(bad)
+    bad = bad[np.argsort(-(tests.statistic[bad] / critical[bad]), kind="stable")]
     taken: set[int] = set()
-    chosen = []
-    for t in bad:
-        if t.i in taken or (t.j >= 0 and t.j in taken):
+    chosen: list[int] = []
+    for k in bad.tolist():
+        i, j = int(tests.i[k]), int(tests.j[k])
+        if i in taken or (j >= 0 and j in taken):
             continue
-        chosen.append(t)
-        taken.update((t.i, t.j))
+        chosen.append(k)
+        taken.update((i, j))
         if len(chosen) >= budget:
             break
     return chosen
 
 
-def variance_components(tests: list[ObservationTest], weights: dict[str, float],
+def variance_components(tests: ObservationTests | Sequence[ObservationTest], weights: dict[str, float],
                          alpha: float) -> dict[str, float]:
     """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current
     weights; a group's weight is divided by sigma_g^2, never above the a-priori weight, and
@@ -61,13 +190,15 @@ def variance_components(tests: list[ObservationTest], weights: dict[str, float],
     (``(e^T P e)_g > chi2(1 - alpha, r_g)``).
     Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
     """
+    if not isinstance(tests, ObservationTests):
+        tests = ObservationTests.from_tests(tests)
     new = dict(weights)
     for kind in weights:
-        group = [t for t in tests if t.kind.value == kind and not t.rejected]
-        r = sum(t.redundancy for t in group)
+        group = (tests.kind == kind) & ~tests.rejected
+        r = float(tests.redundancy[group].sum())
         if r < 5:
             continue
-        omega = sum(t.vtpv for t in group)
+        omega = float(tests.vtpv[group].sum())
         # Only ever inflate the a-priori model: errors shared by all links of a scan (plane-fit
         # systematics) and the trajectory's drift (smooth in time) are invisible in residuals,
         # so a factor below 1 would make the reported sigmas too optimistic. And only where the

@@ -176,6 +176,152 @@ def factorize(N: sp.spmatrix | sp.sparray, *, backend: Backend | None = None,
     return SparseFactor(backend, n, block_size, order, solve_ordered, lower)
 
 
+class BlockPattern:
+    """A symmetric positive definite matrix of ``bs x bs`` blocks whose pattern stays while its values
+    change (the normal matrix of every Gauss-Newton iteration), factorised many times.
+
+    ``rows``, ``cols`` (m,): the block positions that may be nonzero, either triangle (duplicates
+    allowed); the diagonal blocks of all ``n_blocks`` are part of the pattern. :attr:`rows`,
+    :attr:`cols` are then the unique lower-triangle blocks (``rows >= cols``) in the order in which
+    :meth:`factorize` and :meth:`matrix` take their values (``(len(rows), bs, bs)``, block
+    ``N[rows[k], cols[k]]``). The fill-reducing block ordering, the permuted sparse structure and
+    (CHOLMOD) the symbolic analysis are made here once; :meth:`factorize` only gathers the values
+    and runs the numeric factorisation. Blocks of the pattern that stay zero cost some fill, never
+    accuracy.
+    """
+
+    def __init__(self, n_blocks: int, rows: np.ndarray, cols: np.ndarray, block_size: int = 6,
+                 backend: Backend | None = None) -> None:
+        if backend is None:
+            backend = "cholmod" if HAVE_CHOLMOD else "scipy"
+        if backend == "cholmod" and not HAVE_CHOLMOD:
+            raise ImportError("backend='cholmod' needs scikit-sparse (pip install 'kinreg[cholmod]')")
+        if backend == "scipy":
+            _warn_fallback()
+        nb, bs = int(n_blocks), int(block_size)
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        keys = np.unique(np.concatenate([np.maximum(rows, cols) * nb + np.minimum(rows, cols),
+                                         np.arange(nb, dtype=np.int64) * (nb + 1)]))
+        self.rows, self.cols = np.divmod(keys, nb)
+        self.backend: Backend = backend
+        self.n_blocks, self.block_size = nb, bs
+        self._keys = keys
+        self._diag = np.flatnonzero(self.rows == self.cols)  # block i's diagonal block: _diag[i]
+        off = self.rows != self.cols
+        B = sp.coo_matrix((np.ones(np.count_nonzero(off)), (self.rows[off], self.cols[off])), shape=(nb, nb)).tocsc()
+        B = ((B + B.T) > 0).astype(float).tocsc()
+        block_order = (_graph_order_cholmod if backend == "cholmod" else _graph_order_scipy)(B)
+        del B
+        self._order = (bs * block_order[:, None] + np.arange(bs)).ravel()
+        where = np.empty(nb, dtype=np.int64)
+        where[block_order] = np.arange(nb)  # original block -> its position in the ordering
+        # CHOLMOD reads the lower triangle only; SuperLU wants the whole matrix.
+        lower = backend == "cholmod"
+        self._indptr, self._indices, self._gather = _permuted_structure(
+            nb, bs, where[self.rows], where[self.cols], lower)
+        self._symbolic = None
+        if backend == "cholmod" and nb:
+            self._symbolic = analyze(self._permuted(np.zeros((len(keys), bs, bs))), ordering_method="natural")
+
+    def index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Positions in :attr:`rows`/:attr:`cols` of the blocks ``(rows, cols)`` (either triangle);
+        ``ValueError`` for a block outside the pattern."""
+        rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+        want = np.maximum(rows, cols) * self.n_blocks + np.minimum(rows, cols)
+        pos = np.minimum(np.searchsorted(self._keys, want), len(self._keys) - 1)
+        if not np.array_equal(self._keys[pos], want):
+            raise ValueError("block outside the pattern")
+        return pos
+
+    def matrix(self, blocks: np.ndarray) -> sp.csc_matrix:
+        """The whole matrix (csc, original ordering) from the values of the blocks."""
+        off = self.rows != self.cols
+        r = np.concatenate([self.rows, self.cols[off]])
+        c = np.concatenate([self.cols, self.rows[off]])
+        v = np.concatenate([blocks, blocks[off].swapaxes(1, 2)])
+        bs = self.block_size
+        a = np.arange(bs)
+        rr = np.broadcast_to(bs * r[:, None, None] + a[:, None], v.shape)
+        cc = np.broadcast_to(bs * c[:, None, None] + a[None, :], v.shape)
+        n = bs * self.n_blocks
+        return sp.csc_matrix((v.ravel(), (rr.ravel(), cc.ravel())), shape=(n, n))
+
+    def diagonal(self, blocks: np.ndarray) -> np.ndarray:
+        """The matrix's diagonal (n,) from the values of the blocks."""
+        return np.diagonal(blocks[self._diag], axis1=1, axis2=2).ravel()
+
+    def factorize(self, blocks: np.ndarray, damping: float = 0.0) -> SparseFactor:
+        """Factorise the matrix with these block values (``(len(rows), bs, bs)``), its diagonal
+        raised by ``damping`` times itself (Marquardt). Raises :class:`EstimationError` as
+        :func:`factorize` does."""
+        n = self.n_blocks * self.block_size
+        diag = self.diagonal(blocks)
+        if damping:
+            blocks = blocks.copy()
+            d = np.arange(self.block_size)
+            blocks[self._diag[:, None], d, d] += damping * diag.reshape(-1, self.block_size)
+            diag = self.diagonal(blocks)
+        if n and not np.all(diag > 0):
+            k = int(np.argmin(diag))
+            raise _singular(f"diagonal entry {k} is {diag[k]:.3g}")
+        Nq = self._permuted(blocks)
+        if self.backend == "cholmod":
+            factor = _factorize_cholmod(Nq, natural=True, symbolic=self._symbolic)
+        else:
+            factor = _factorize_scipy(Nq, natural=True)
+        solve_ordered, lower_ordered, pivots, perm = factor
+        _check_pivots(pivots, diag[self._order][perm])
+        order = self._order
+
+        def lower() -> tuple[sp.csc_matrix, np.ndarray, np.ndarray]:
+            L, d = lower_ordered()
+            return L, d, order[perm]
+
+        return SparseFactor(self.backend, n, self.block_size, order, solve_ordered, lower)
+
+    def _permuted(self, blocks: np.ndarray) -> sp.csc_matrix:
+        n = self.n_blocks * self.block_size
+        Nq = sp.csc_matrix((blocks.reshape(-1)[self._gather], self._indices, self._indptr), shape=(n, n))
+        Nq.has_sorted_indices = True
+        return Nq
+
+
+def _permuted_structure(nb: int, bs: int, R: np.ndarray, C: np.ndarray,
+                        lower: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The csc structure of the block matrix in the block ordering: ``(indptr, indices, gather)`` with
+    ``data = blocks.ravel()[gather]``. Block k (``rows[k] >= cols[k]``) lies at ordered block
+    position (R[k], C[k]); ``lower``: the lower triangle only (in the ordering), else both."""
+    src = np.arange(len(R), dtype=np.int64)
+    flip = R < C  # stored at (C, R) in the lower triangle, transposed
+    if lower:
+        R, C = np.maximum(R, C), np.minimum(R, C)
+    else:
+        off = R != C
+        src = np.concatenate([src, src[off]])
+        flip = np.concatenate([np.zeros(len(R), dtype=bool), np.ones(np.count_nonzero(off), dtype=bool)])
+        R, C = np.concatenate([R, C[off]]), np.concatenate([C, R[off]])
+    o = np.lexsort((R, C))
+    R, C, src, flip = R[o], C[o], src[o], flip[o]
+    per_col = np.bincount(C, minlength=nb)
+    local = np.arange(len(C)) - (np.cumsum(per_col) - per_col)[C]  # the block's place in its column
+    a = np.arange(bs)[None, None, :]  # row within the block
+    b = np.arange(bs)[None, :, None]  # column within the block
+    shift = b if lower else 0 * b  # the diagonal block (first in its column) keeps rows a >= b
+    counts = (bs * per_col[:, None] - shift[0, :, 0]).ravel()
+    indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    pos = indptr[:-1].reshape(nb, bs)[C][:, :, None] + bs * local[:, None, None] + a - shift
+    keep = ~(lower & (R == C)[:, None, None] & (a < b)) if lower else np.ones(pos.shape, dtype=bool)
+    keep = np.broadcast_to(keep, pos.shape)
+    row = np.broadcast_to(bs * R[:, None, None] + a, pos.shape)
+    index_type = np.int32 if max(len(R) * bs * bs, bs * nb) < 2**31 - 1 else np.int64
+    source = bs * bs * src[:, None, None] + np.where(flip[:, None, None], bs * b + a, bs * a + b)
+    indices = np.empty(indptr[-1], dtype=index_type)
+    gather = np.empty(indptr[-1], dtype=index_type)
+    indices[pos[keep]] = row[keep]
+    gather[pos[keep]] = source[keep]
+    return indptr.astype(index_type), indices, gather
+
+
 def _warn_fallback() -> None:
     global _fallback_warned
     if not _fallback_warned:
@@ -206,26 +352,35 @@ def _block_pattern(N: sp.csc_matrix, bs: int) -> sp.csc_matrix:
 
 
 def _block_order_cholmod(N: sp.csc_matrix, bs: int) -> np.ndarray:
+    return _graph_order_cholmod(_block_pattern(N, bs))
+
+
+def _graph_order_cholmod(B: sp.csc_matrix) -> np.ndarray:
     # CHOLMOD's own choice (AMD, METIS when AMD fills badly) on the block graph: six times smaller
     # than the scalar graph, and it keeps each station's unknowns together.
-    B = _block_pattern(N, bs)
     B = (B + sp.eye(B.shape[0], format="csc")).tocsc()
     return np.asarray(analyze(B).P(), dtype=np.int64)
 
 
 def _block_order_scipy(N: sp.csc_matrix, bs: int) -> np.ndarray:
+    return _graph_order_scipy(_block_pattern(N, bs))
+
+
+def _graph_order_scipy(B: sp.csc_matrix) -> np.ndarray:
     # SuperLU's minimum degree on A^T + A, run on a diagonally dominant matrix with the block graph's
     # pattern; scipy exposes no other symmetric fill-reducing ordering.
-    B = _block_pattern(N, bs)
     nb = B.shape[0]
     M = (sp.diags(np.asarray(B.sum(axis=1)).ravel() + 1.0) - B).tocsc()
     lu = splu(M, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     return np.argsort(lu.perm_c) if nb else np.arange(0)
 
 
-def _factorize_cholmod(Nq: sp.csc_matrix, natural: bool):
+def _factorize_cholmod(Nq: sp.csc_matrix, natural: bool, symbolic=None):
     try:
-        f = cholesky(Nq, ordering_method="natural" if natural else "default")
+        if symbolic is not None:  # the same pattern analysed before: the numeric factorisation only
+            f = symbolic.cholesky(Nq)
+        else:
+            f = cholesky(Nq, ordering_method="natural" if natural else "default")
     except CholmodNotPositiveDefiniteError as error:  # the supernodal factorisation stops at once
         raise _singular(str(error)) from error
     perm = np.asarray(f.P(), dtype=np.int64)
@@ -258,11 +413,12 @@ def _factorize_scipy(Nq: sp.csc_matrix, natural: bool):
     return lu.solve, lower, pivots, perm
 
 
-def selected_inverse(N: sp.spmatrix | sp.sparray, block_size: int = 6, pairs: np.ndarray | None = None,
+def selected_inverse(N: sp.spmatrix | sp.sparray | None, block_size: int = 6, pairs: np.ndarray | None = None,
                      factor: SparseFactor | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Diagonal blocks of ``N^-1`` and its blocks at the requested block pairs.
 
-    ``N``: symmetric positive definite (n x n, sparse), ``n = n_blocks * block_size``. ``pairs``:
+    ``N``: symmetric positive definite (n x n, sparse), ``n = n_blocks * block_size``; ``None``
+    with a ``factor`` of a block ordering (:meth:`BlockPattern.factorize`). ``pairs``:
     integer array (k, 2) of block indices ``(i, j)`` in the original ordering, normally pairs whose
     block ``N[i, j]`` is nonzero (linked stations). ``factor``: a :func:`factorize` result of the same
     ``N`` to reuse; one factorised with another block size is factorised again.
@@ -273,9 +429,14 @@ def selected_inverse(N: sp.spmatrix | sp.sparray, block_size: int = 6, pairs: np
     their columns (slower). Raises :class:`EstimationError` if ``N`` is singular (no datum) and
     ``ValueError`` for a block index out of range.
     """
-    N = sp.csc_matrix(N, dtype=float)
     bs = int(block_size)
-    n = N.shape[0]
+    if N is None:  # the factor's matrix (BlockPattern.factorize)
+        if factor is None or factor.block_size is None or factor.block_size % bs:
+            raise ValueError("selected_inverse without N needs a factor with a block ordering")
+        n = factor.n
+    else:
+        N = sp.csc_matrix(N, dtype=float)
+        n = N.shape[0]
     if n % bs:
         raise ValueError(f"matrix size {n} is not a multiple of block_size={bs}")
     nb = n // bs
