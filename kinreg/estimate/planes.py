@@ -223,12 +223,16 @@ def plane_covariance(
     """
     n_pts = len(resid_m)
     w = resid_m * resid_m
-    ws = st_m * w[:, None]
+    # Contiguous columns and numpy's own sums (not BLAS: same bits for any thread count).
+    s, t = np.ascontiguousarray(st_m[:, 0]), np.ascontiguousarray(st_m[:, 1])
+    ws, wt = w * s, w * t
     meat = np.empty((3, 3))
-    meat[:2, :2] = np.einsum("ni,nj->ij", ws, st_m)  # not BLAS: same bits for any thread count
-    meat[:2, 2] = meat[2, :2] = -ws.sum(axis=0)
+    meat[0, 0], meat[1, 1] = np.sum(ws * s), np.sum(wt * t)
+    meat[0, 1] = meat[1, 0] = np.sum(ws * t)
+    meat[0, 2] = meat[2, 0] = -np.sum(ws)
+    meat[1, 2] = meat[2, 1] = -np.sum(wt)
     meat[2, 2] = w.sum()
-    N_inv = 1.0 / np.array([*np.einsum("ni,ni->i", st_m, st_m), float(n_pts)])
+    N_inv = 1.0 / np.array([np.sum(s * s), np.sum(t * t), float(n_pts)])
     cov_c = N_inv[:, None] * meat * N_inv[None, :] * (n_pts / max(n_pts - 3, 1))
     cov_c[0, 0] += min_sigma_angle_rad**2
     cov_c[1, 1] += min_sigma_angle_rad**2
