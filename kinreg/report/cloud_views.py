@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from kinreg.config import ReportConfig
 from kinreg.geometry import FloatArray
@@ -72,6 +73,7 @@ FIGURES_DIR = "figures"
 SUMMARY_NAME = "cloud.json"
 INSETS, INSET_M = 3, 3.0  # zoomed windows of the first section where the correction is largest, their size
 MIN_CELL_POINTS = 50  # points of a planar cell (1 m cell at 5 mm noise: the thickness to ~10 %)
+BLOCK_POINTS = 1 << 16  # points per block of the rasters
 
 
 class CloudViews:
@@ -114,24 +116,36 @@ class CloudViews:
         if self.heights is None:
             self.heights = choose_heights(xyz_before[::7, 2], self.config.section_band_m)
         time01 = ((np.asarray(stamps_s, dtype=np.float64) - self.t0_s) / self.duration_s).astype(np.float32)
+        # The rasters in blocks whose temporaries stay in the cache (fresh arrays of a whole chunk
+        # cost more than the arithmetic: the kernel maps and zeroes their pages).
+        for a in range(0, len(time01), BLOCK_POINTS):
+            block = slice(a, a + BLOCK_POINTS)
+            self._add_to_rasters(xyz_before[block], xyz_after[block], time01[block])
+        stride = self.config.thickness_stride
+        for which, xyz in (("before", xyz_before), ("after", xyz_after)):
+            self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
+            if self.deviations is not None:
+                self.deviations.add(which, xyz)
+        self.n_points += len(stamps_s)
+        self.seconds["gather"] += time.perf_counter() - start
+
+    def _add_to_rasters(self, xyz_before: FloatArray, xyz_after: FloatArray, time01: NDArray[np.float32]) -> None:
+        """The sections, the correction map and the vertical section of one block of points."""
         half = 0.5 * self.config.section_band_m
         for which, xyz in (("before", xyz_before), ("after", xyz_after)):
-            for k, z in enumerate(self.heights):
-                band = np.abs(xyz[:, 2] - z) <= half
-                raster = self.rasters.setdefault((z, which), SectionRaster(self.grid))
+            z_column = xyz[:, 2]
+            for k, z in enumerate(self.heights or []):
+                band = np.abs(z_column - z) <= half
+                raster = self.rasters.get((z, which))
+                if raster is None:
+                    raster = self.rasters[(z, which)] = SectionRaster(self.grid)
                 raster.add(xyz[band, :2], time01[band])
                 if k == 0 and which == "after":
                     shift = xyz_after[band, :2] - xyz_before[band, :2]
                     self.corrections.add(xyz_after[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
-            stride = self.config.thickness_stride
-            self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
-            if self.deviations is not None:
-                self.deviations.add(which, xyz)
             if self.vertical is not None:
                 projected, inside = self.vertical.project(xyz)
                 self.vertical_rasters[which].add(projected, time01[inside])
-        self.n_points += len(stamps_s)
-        self.seconds["gather"] += time.perf_counter() - start
 
     def finish(self, out_dir: Path) -> dict[str, Any]:
         """Write the figures into ``out_dir/figures`` and return ``{"cloud": ..., "crs": ...}`` for
