@@ -11,6 +11,10 @@ Usage:
     python benchmarks/bench_report_views.py --run sample_data/run_trajectory.txt sample_data/run_cloud.laz \\
         --run /tmp/big/run_trajectory.txt /tmp/big/run_cloud.laz --keep-pngs 1 --out benchmarks/report_views.json
 
+The views' own seconds are CPU seconds of the thread that gathers them (``gather``) and draws
+the figures (``figures``): corrected.laz is decoded and encoded on other threads at the same
+time, whose work would count in the wall time inside the views' calls.
+
 Make a bigger run with ``python sample_data/simulate.py --out /tmp/big ...`` (its command line is
 stored in the JSON when ``--label`` names it). The wall times are noisy on a shared machine; the
 views' own seconds are measured inside the run and are the figure to quote.
