@@ -95,11 +95,10 @@ class LasCloudReader:
             intensity = None if raw.intensity is None else np.array(raw.intensity, dtype=np.float32)
             yield CloudChunk(xyz=xyz, stamps_s=stamps, intensity=intensity, first_index=raw.first_index)
 
-    def iter_raw_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS, buffers: int = 1) -> Iterator[RawChunk]:
+    def iter_raw_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[RawChunk]:
         """Yield the points in file order as stored (integer coordinates, see :class:`RawChunk`),
-        ``chunk_points`` at a time. LAZ points are decompressed into ``buffers`` buffers used in
-        turn, so a chunk's arrays are valid only until ``buffers`` more chunks are requested (two
-        let one chunk be decoded while the previous one is used)."""
+        ``chunk_points`` at a time. LAZ points are decompressed into one buffer reused for every
+        chunk, so a chunk's arrays are valid only until the next one is requested."""
         # Reading again from the start: laspy's reader only goes forwards.
         first = 0
         n_total = self.info.n_points
@@ -116,17 +115,14 @@ class LasCloudReader:
         # a tenth of the decoding. lazrs decompresses into any writable buffer.
         decompressor = getattr(source, "decompressor", None)
         decompress_into = getattr(decompressor, "decompress_many", None)
-        pool: list[bytearray | None] = [None] * max(1, buffers)
-        k = 0
+        buffer: bytearray | None = None
         while first < n_total:
             n = min(chunk_points, n_total - first)
             try:
                 with library_calls(self.path):
                     if decompress_into is not None and dtype.itemsize == point_format.size:
-                        buffer = pool[k % len(pool)]
                         if buffer is None:
-                            buffer = pool[k % len(pool)] = bytearray(n * dtype.itemsize)
-                        k += 1
+                            buffer = bytearray(n * dtype.itemsize)
                         view = memoryview(buffer)[: n * dtype.itemsize]
                         decompress_into(view)
                         array = np.frombuffer(view, dtype=dtype)

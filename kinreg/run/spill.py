@@ -27,7 +27,7 @@ from collections import OrderedDict
 from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import BinaryIO, TypeVar
+from typing import BinaryIO
 
 import numpy as np
 
@@ -41,8 +41,6 @@ from kinreg.run.codecs import windows_from_arrays, windows_to_arrays
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, SkippedWindow, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
-
-T = TypeVar("T")
 
 # Coordinates are float32 offsets from the unit's origin (the trajectory position at the unit's
 # middle): points within a few hundred metres of it keep better than 0.02 mm, and the spill
@@ -287,11 +285,8 @@ def slice_quasi_static(
         stager = _Stager(store, chunk_points)
         # LAS/LAZ: the stored integers, converted while the records are assembled (no float64
         # copy of each chunk); other readers: their float64 chunks.
-        # The next chunk is decoded on a thread (lazrs runs without the GIL) while this one is spilled,
-        # into the other of two buffers.
         iter_raw = getattr(cloud, "iter_raw_chunks", None)
-        chunks = read_ahead(iter_raw(chunk_points, buffers=2)) if iter_raw is not None \
-            else cloud.iter_chunks(chunk_points)
+        chunks = iter_raw(chunk_points) if iter_raw is not None else cloud.iter_chunks(chunk_points)
         for chunk in chunks:
             if chunk.stamps_s is None:
                 raise InputError("the cloud has no point times", cloud.path)
@@ -344,23 +339,6 @@ def slice_quasi_static(
             f"no window has at least {config.min_points} points ({n_ranges} windows); "
             "use longer windows or a smaller min_points", cloud.path)
     return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=owns_folder)
-
-
-def read_ahead(items: Iterator[T]) -> Iterator[T]:
-    """``items``, each next one taken on a thread while the caller works on the current one
-    (errors are raised in the caller, where the item would have been). The items must stay
-    valid while the next one is made (e.g. :meth:`~kinreg.io.las.LasReader.iter_raw_chunks`
-    with two buffers)."""
-    done = object()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinreg-read-ahead") as thread:
-        ahead = thread.submit(next, items, done)
-        try:
-            while (item := ahead.result()) is not done:
-                ahead = thread.submit(next, items, done)
-                yield item  # type: ignore[misc]
-        finally:
-            if not ahead.cancel():
-                ahead.exception()  # settled before the thread is shut down
 
 
 def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:
