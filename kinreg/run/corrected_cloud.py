@@ -73,8 +73,9 @@ def write_corrected_las(
                             laz_backend=_laz_backend() if compress else None) as writer, \
                     ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinreg-decode") as decoding, \
                     ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinreg-encode") as encoding:
-                # Decoding the next chunk and encoding the previous one (lazrs, without the GIL) overlap
-                # the correction of this one; one chunk in flight each way keeps memory bounded.
+                # The next chunk is decoded and the previous one encoded on threads while this one is
+                # corrected; one chunk in flight each way keeps memory bounded. lazrs holds the GIL
+                # for a whole call, so they overlap little (about 5 % here, benchmarks/RESULTS.md).
                 chunks = _chunks(reader, chunk_points, source)
                 ahead = decoding.submit(next, chunks, None)
                 written: Future[None] | None = None
