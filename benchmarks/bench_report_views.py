@@ -11,6 +11,14 @@ Usage:
     python benchmarks/bench_report_views.py --run sample_data/run_trajectory.txt sample_data/run_cloud.laz \\
         --run /tmp/big/run_trajectory.txt /tmp/big/run_cloud.laz --keep-pngs 1 --out benchmarks/report_views.json
 
+The views' own seconds are CPU seconds of the thread that gathers them (``gather``) and draws
+the figures (``figures``): corrected.laz is decoded and encoded on other threads at the same
+time, whose work would count in the wall time inside the views' calls. They are compared with
+the run's time (stage timings: ``views_share_of_process``) and with its CPU seconds
+(``views_share_of_process_cpu``: ``getrusage`` of the reaped children, i.e. the kinreg process
+with all its threads but not its worker processes, which it does not reap: an upper bound of the
+views' share of all the run's CPU), which the load of a shared machine skews less.
+
 Make a bigger run with ``python sample_data/simulate.py --out /tmp/big ...`` (its command line is
 stored in the JSON when ``--label`` names it). The wall times are noisy on a shared machine; the
 views' own seconds are measured inside the run and are the figure to quote.
@@ -21,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -36,17 +45,25 @@ def run_process(trajectory: str, cloud: str, out: Path, views: bool) -> dict:
     config.write_text(f"[report]\ncloud_views = {'true' if views else 'false'}\n")
     env = {**os.environ, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'cli'}"}
     start = time.perf_counter()
+    cpu_start = _children_cpu_s()
     done = subprocess.run([sys.executable, "-m", "kinreg_cli", "process", "-t", trajectory, "-c", cloud, "--out",
                            str(out), "--config", str(config), "--overwrite"], env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(f"kinreg process failed:\n{done.stderr[-3000:]}")
     wall = time.perf_counter() - start
+    cpu = _children_cpu_s() - cpu_start  # the process with its threads (not its unreaped workers), user + system
     report = json.loads((out / "report.json").read_text())
     views = out / "figures" / "cloud.json"
     seconds = json.loads(views.read_text())["seconds"] if views.exists() else None
-    return {"wall_s": wall, "timings_s": report["timings_s"], "cloud": report.get("cloud"), "seconds": seconds,
+    return {"wall_s": wall, "cpu_s": cpu, "timings_s": report["timings_s"], "cloud": report.get("cloud"),
+            "seconds": seconds,
             "crs": report.get("crs"), "report_html_bytes": (out / "report.html").stat().st_size,
             "n_points": report["inputs"].get("n_points")}
+
+
+def _children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def main() -> None:
@@ -74,6 +91,11 @@ def main() -> None:
                 "wall_s_with_views": with_views["wall_s"],
                 "views_s": seconds,
                 "views_share_of_process": own / process_s,
+                # like with like: the views' CPU seconds against the CPU seconds of the run without
+                # them (the kinreg process's threads; its workers are not counted: an upper bound)
+                "cpu_s_without_views": without["cpu_s"],
+                "cpu_s_with_views": with_views["cpu_s"],
+                "views_share_of_process_cpu": own / without["cpu_s"],
                 "html_bytes_without_views": without["report_html_bytes"],
                 "html_bytes_with_views": with_views["report_html_bytes"],
                 "sections": [{key: s[key] for key in ("z_m", "pixel_m", "width_px", "height_px", "n_points_before")}
@@ -84,8 +106,9 @@ def main() -> None:
                 "crs": with_views["crs"],
             }
             results.append(entry)
-            print(f"{label}: {entry['n_points']:,} points, process {process_s:.1f} s, views {own:.2f} s "
-                  f"({100 * entry['views_share_of_process']:.1f} %), thickness ratio "
+            print(f"{label}: {entry['n_points']:,} points, process {process_s:.1f} s ({without['cpu_s']:.1f} CPU s), "
+                  f"views {own:.2f} CPU s ({100 * entry['views_share_of_process']:.1f} % of the process time, "
+                  f"{100 * entry['views_share_of_process_cpu']:.1f} % of its CPU), thickness ratio "
                   f"{entry['thickness']['median_ratio_after_before']:.3f}", flush=True)
             if args.keep_pngs == k:
                 for name in ("section_1_before.png", "section_1_after.png"):

@@ -33,3 +33,15 @@ def test_local_workers_and_dask_cluster_give_identical_results(small_run):
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
         assert run(small_run, "dask", scheduler=cluster.scheduler_address) == serial
+
+
+def test_sequence_written_on_a_worker_equals_the_one_written_in_this_process(small_run):
+    # With local workers sequence.e57 is written on one of them while this process writes
+    # corrected.laz; both files must be the same bytes as when written one after the other.
+    data = small_run / "data"
+    for name, workers in (("overlap-serial", 1), ("overlap-workers2", 2)):
+        process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz"), small_run / name, KinregConfig(),
+                workers=workers)
+    for name in ("sequence.e57", "corrected.laz", "stations.csv"):
+        overlapped = (small_run / "overlap-workers2" / name).read_bytes()
+        assert overlapped == (small_run / "overlap-serial" / name).read_bytes(), name

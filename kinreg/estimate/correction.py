@@ -42,6 +42,8 @@ from kinreg.types import Trajectory, TrajectoryJump
 
 # Grid of the correction for points [s] (:meth:`DriftCorrection.apply_to_points`).
 POINT_GRID_S = 0.01
+# Points per block of the interpolation (its temporaries, 15 values a point, stay in the cache).
+_POINT_BLOCK = 1 << 13
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,13 +113,23 @@ class DriftCorrection:
         rotvec, delta, pivot = self._at(grid)
         A = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix - np.eye(3)
         origin = pivot[0]  # interpolated relative to it: UTM-sized values keep their precision
-
-        def at(values: FloatArray) -> FloatArray:
-            return np.column_stack([np.interp(t, grid, values[:, k]) for k in range(values.shape[1])])
-
-        d = xyz - (at(pivot - origin) + origin)
-        A_t = at(A.reshape(-1, 9)).reshape(-1, 3, 3)
-        return xyz + np.einsum("nij,nj->ni", A_t, d) + at(delta)
+        # np.interp's formula (value at the node below plus slope times the time since it), for
+        # the 15 values at once and in blocks that stay in the cache: no per-column search, no
+        # (n, 3, 3) matrices.
+        table = np.hstack([A.reshape(-1, 9), delta, pivot - origin])
+        slope = np.diff(table, axis=0) / np.diff(grid)[:, None]
+        out = np.empty((len(t), 3))
+        for a in range(0, len(t), _POINT_BLOCK):
+            tb, x = t[a:a + _POINT_BLOCK], xyz[a:a + _POINT_BLOCK]
+            k = np.clip(np.searchsorted(grid, tb, side="right") - 1, 0, len(grid) - 2)
+            v = table[k] + (tb - grid[k])[:, None] * slope[k]
+            d = x - (v[:, 12:15] + origin)
+            o = out[a:a + len(tb)]
+            for i in range(3):
+                o[:, i] = v[:, 3 * i] * d[:, 0] + v[:, 3 * i + 1] * d[:, 1] + v[:, 3 * i + 2] * d[:, 2]
+            o += x
+            o += v[:, 9:12]
+        return out
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""

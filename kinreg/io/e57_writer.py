@@ -183,7 +183,9 @@ class E57SequenceWriter:
 
         if n > 0:
             box = libe57.StructureNode(imf)
-            lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+            # Column by column: numpy's reductions along the first axis of (n, 3) are slow.
+            lo = [float(xyz[:, i].min()) for i in range(3)]
+            hi = [float(xyz[:, i].max()) for i in range(3)]
             for i, axis in enumerate("xyz"):
                 box.set(f"{axis}Minimum", libe57.FloatNode(imf, float(lo[i])))
                 box.set(f"{axis}Maximum", libe57.FloatNode(imf, float(hi[i])))

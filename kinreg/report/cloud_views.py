@@ -18,8 +18,10 @@ keeps only rasters and per-cell moments (bounded memory, no extra pass over the 
 
 The same entries are kept in ``DIR/figures/cloud.json``, with the seconds the views took
 (``seconds``: ``gather`` while corrected.laz is written, ``figures`` in :meth:`CloudViews.finish`;
-not in report.json, which holds only what does not depend on how the run got there): a resumed
-run whose corrected cloud is still current (not written again) shows them from there.
+CPU seconds of the thread doing them, because the cloud's decoding and encoding run on other
+threads alongside and would count in wall time; not in report.json, which holds only what does
+not depend on how the run got there): a resumed run whose corrected cloud is still current (not
+written again) shows them from there.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from kinreg.config import ReportConfig
 from kinreg.geometry import FloatArray
@@ -72,6 +75,11 @@ FIGURES_DIR = "figures"
 SUMMARY_NAME = "cloud.json"
 INSETS, INSET_M = 3, 3.0  # zoomed windows of the first section where the correction is largest, their size
 MIN_CELL_POINTS = 50  # points of a planar cell (1 m cell at 5 mm noise: the thickness to ~10 %)
+# At most about this many points enter the thickness map (every n-th beyond): hundreds per planar
+# 1 m cell of a building; every 2nd to 4th point of a 20 M-point run moved the median ratio by
+# 0.0005 at most (benchmarks/RESULTS.md), and the sums are most of the views' cost.
+THICKNESS_POINTS = 8_000_000
+BLOCK_POINTS = 1 << 16  # points per block of the rasters
 
 
 class CloudViews:
@@ -84,8 +92,11 @@ class CloudViews:
 
     def __init__(self, config: ReportConfig, bounds_min: FloatArray, bounds_max: FloatArray, t0_s: float,
                  t1_s: float, crs: dict[str, Any] | None = None, static_planes: StaticPlanes | None = None,
-                 vertical: VerticalPlane | None = None) -> None:
+                 vertical: VerticalPlane | None = None, n_points_total: int = 0) -> None:
         self.config = config
+        # Every n-th point enters the thickness map: [report] thickness_stride, or more so that
+        # about THICKNESS_POINTS of the n_points_total do.
+        self.thickness_stride = max(config.thickness_stride, int(n_points_total) // THICKNESS_POINTS)
         self.grid = Grid.covering(bounds_min, bounds_max, config.section_pixel_m, config.section_max_px)
         self.t0_s, self.duration_s = float(t0_s), max(float(t1_s) - float(t0_s), 1e-9)
         self.heights: list[float] | None = list(config.section_heights_m) or None
@@ -110,28 +121,40 @@ class CloudViews:
         """One chunk: object-frame points (n, 3) as read and as corrected, their times (n,)."""
         if not self.config.cloud_views or len(stamps_s) == 0:
             return
-        start = time.perf_counter()
+        start = time.thread_time()
         if self.heights is None:
             self.heights = choose_heights(xyz_before[::7, 2], self.config.section_band_m)
         time01 = ((np.asarray(stamps_s, dtype=np.float64) - self.t0_s) / self.duration_s).astype(np.float32)
+        # The rasters in blocks whose temporaries stay in the cache (fresh arrays of a whole chunk
+        # cost more than the arithmetic: the kernel maps and zeroes their pages).
+        for a in range(0, len(time01), BLOCK_POINTS):
+            block = slice(a, a + BLOCK_POINTS)
+            self._add_to_rasters(xyz_before[block], xyz_after[block], time01[block])
+        stride = self.thickness_stride
+        for which, xyz in (("before", xyz_before), ("after", xyz_after)):
+            self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
+            if self.deviations is not None:
+                self.deviations.add(which, xyz)
+        self.n_points += len(stamps_s)
+        self.seconds["gather"] += time.thread_time() - start
+
+    def _add_to_rasters(self, xyz_before: FloatArray, xyz_after: FloatArray, time01: NDArray[np.float32]) -> None:
+        """The sections, the correction map and the vertical section of one block of points."""
         half = 0.5 * self.config.section_band_m
         for which, xyz in (("before", xyz_before), ("after", xyz_after)):
-            for k, z in enumerate(self.heights):
-                band = np.abs(xyz[:, 2] - z) <= half
-                raster = self.rasters.setdefault((z, which), SectionRaster(self.grid))
+            z_column = xyz[:, 2]
+            for k, z in enumerate(self.heights or []):
+                band = np.abs(z_column - z) <= half
+                raster = self.rasters.get((z, which))
+                if raster is None:
+                    raster = self.rasters[(z, which)] = SectionRaster(self.grid)
                 raster.add(xyz[band, :2], time01[band])
                 if k == 0 and which == "after":
                     shift = xyz_after[band, :2] - xyz_before[band, :2]
                     self.corrections.add(xyz_after[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
-            stride = self.config.thickness_stride
-            self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
-            if self.deviations is not None:
-                self.deviations.add(which, xyz)
             if self.vertical is not None:
                 projected, inside = self.vertical.project(xyz)
                 self.vertical_rasters[which].add(projected, time01[inside])
-        self.n_points += len(stamps_s)
-        self.seconds["gather"] += time.perf_counter() - start
 
     def finish(self, out_dir: Path) -> dict[str, Any]:
         """Write the figures into ``out_dir/figures`` and return ``{"cloud": ..., "crs": ...}`` for
@@ -142,7 +165,7 @@ class CloudViews:
             return {"crs": self.crs}
         if self.n_points == 0:
             return _previous(figures, self.crs)
-        start = time.perf_counter()
+        start = time.thread_time()
         figures.mkdir(parents=True, exist_ok=True)
         for old in figures.glob("*.png"):  # of an earlier run in this folder (other heights, other runs)
             old.unlink()
@@ -173,7 +196,7 @@ class CloudViews:
             noise = cloud["thickness"].get("median_after_mm")
             cloud["static_deviations"] = self.deviations.figures(noise if noise and math.isfinite(noise) else 5.0)
         result = {"cloud": cloud, "crs": self.crs}
-        self.seconds["figures"] = time.perf_counter() - start
+        self.seconds["figures"] = time.thread_time() - start
         # The seconds only here (report.json holds what does not depend on how the run got there).
         with atomic_path(figures / SUMMARY_NAME, overwrite=True) as tmp:
             tmp.write_text(json.dumps(_clean({**result, "seconds": self.seconds}), indent=1) + "\n", encoding="utf-8")
@@ -210,7 +233,7 @@ class CloudViews:
     def _thickness(self, figures: Path) -> dict[str, Any]:
         result = compare(self.moments["before"], self.moments["after"], MIN_CELL_POINTS)
         entry: dict[str, Any] = dict(result.figures)
-        entry["thickness_stride"] = self.config.thickness_stride
+        entry["thickness_stride"] = self.thickness_stride
         cells = np.vstack([result.cells_before, result.cells_after])
         if len(cells) == 0:
             return entry
@@ -280,8 +303,10 @@ def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajector
     stamps_s = [t.stamps_s for t in trajectories]
 
     lows, highs = [], []
+    n_points = 0
     for path in clouds:
         with open_cloud(path, require_time=False) as cloud:
+            n_points += cloud.info.n_points
             if cloud.info.bounds_min is None or cloud.info.bounds_max is None:
                 continue
             lo, hi = np.asarray(cloud.info.bounds_min), np.asarray(cloud.info.bounds_max)
@@ -309,7 +334,7 @@ def cloud_views_for_runs(config: ReportConfig, clouds: Sequence[Path], trajector
         from kinreg.report.deviations import static_planes_from_e57
 
         planes = static_planes_from_e57(static, np.asarray(bounds_min) - 1.0)
-    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs, planes, vertical)
+    return CloudViews(config, bounds_min, bounds_max, t0, t1, crs, planes, vertical, n_points)
 
 
 def _without_views(config: ReportConfig) -> ReportConfig:

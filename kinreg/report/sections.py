@@ -271,8 +271,8 @@ class VerticalPlane:
     def project(self, xyz: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(m, 2) (distance along the line, height) of the points inside the band, and which they are."""
         u = (self.end_xy - self.start_xy) / self.length_m
-        rel = xyz[:, :2] - self.start_xy
-        across = rel[:, 0] * u[1] - rel[:, 1] * u[0]
+        x, y = xyz[:, 0] - self.start_xy[0], xyz[:, 1] - self.start_xy[1]  # contiguous columns: faster
+        across = x * u[1] - y * u[0]
         inside = np.abs(across) <= 0.5 * self.band_m
-        along = rel[inside] @ u
+        along = x[inside] * u[0] + y[inside] * u[1]
         return np.column_stack([along, xyz[inside, 2]]), inside

@@ -24,6 +24,7 @@ _BITS = 21  # per axis in the cell key: 2^21 cells (2,097 km at 1 m) from the gr
 PLANAR_RATIO = 1.0 / 16.0  # smallest / middle eigenvalue: thickness at most a quarter of the spread
 MIN_SPREAD_M = 0.1  # the middle eigenvalue's root: a patch, not a line of points
 DENSE_CELLS = 250_000  # cells of the bounding box up to which the sums are one dense array (20 MB)
+_BLOCK_POINTS = 1 << 15  # points per block of the dense sums
 
 
 class CellMoments:
@@ -50,24 +51,43 @@ class CellMoments:
                 self._dense = np.zeros((10, int(np.prod(dims))), dtype=np.float64)
 
     def add(self, xyz: FloatArray) -> None:
-        rel = xyz - self.origin
-        ijk = np.floor(rel / self.cell_m).astype(np.int64)
-        limit = self._dims if self._dims is not None else (1 << _BITS,) * 3
-        if len(ijk) and (ijk.min() < 0 or np.any(ijk.max(axis=0) >= np.array(limit))):  # rare: test per point
-            ok = np.all((ijk >= 0) & (ijk < np.array(limit)), axis=1)
-            rel, ijk = rel[ok], ijk[ok]
-        if len(ijk) == 0:
+        """Add the points ``xyz`` (n, 3)."""
+        if self._dense is None:
+            self._add(xyz)
             return
-        local = rel - ijk * self.cell_m
-        x, y, z = local[:, 0], local[:, 1], local[:, 2]
+        # In blocks whose temporaries stay in the cache: fresh arrays of a whole chunk cost more
+        # than the arithmetic (the kernel maps and zeroes every page of every new large array).
+        for a in range(0, len(xyz), _BLOCK_POINTS):
+            self._add(xyz[a:a + _BLOCK_POINTS])
+
+    def _add(self, xyz: FloatArray) -> None:
+        # One coordinate at a time on contiguous columns (numpy's (n, 3) arithmetic and its
+        # reductions along the first axis are several times slower), the cell indices as floats
+        # (whole numbers, exact) converted to integers once, in the cell key.
+        rel = [xyz[:, k] - self.origin[k] for k in range(3)]
+        ijk = [np.floor(c / self.cell_m) for c in rel]
+        limit = self._dims if self._dims is not None else (1 << _BITS,) * 3
+        if len(rel[0]) and any(q.min() < 0 or q.max() >= top for q, top in zip(ijk, limit, strict=True)):
+            ok = np.ones(len(rel[0]), dtype=bool)  # rare: test per point
+            for q, top in zip(ijk, limit, strict=True):
+                ok &= (q >= 0) & (q < top)
+            rel, ijk = [c[ok] for c in rel], [q[ok] for q in ijk]
+        if len(rel[0]) == 0:
+            return
+        x, y, z = (c - q * self.cell_m for c, q in zip(rel, ijk, strict=True))
         weights = (None, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
         if self._dense is not None and self._dims is not None:
-            flat = (ijk[:, 0] * self._dims[1] + ijk[:, 1]) * self._dims[2] + ijk[:, 2]
+            flat_f = ijk[0] * self._dims[1]
+            flat_f += ijk[1]
+            flat_f *= self._dims[2]
+            flat_f += ijk[2]
+            flat = flat_f.astype(np.int64)  # below DENSE_CELLS: exact in float64
             n = self._dense.shape[1]
-            for k, w in enumerate(weights):
-                self._dense[k] += np.bincount(flat, weights=w, minlength=n)
+            for row, w in zip(self._dense, weights, strict=True):
+                row += np.bincount(flat, weights=w, minlength=n)
             return
-        key = (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+        i, j, k = (q.astype(np.int64) for q in ijk)
+        key = (i << (2 * _BITS)) | (j << _BITS) | k
         cells, inverse = np.unique(key, return_inverse=True)
         m = len(cells)
         sums = np.column_stack([np.bincount(inverse, weights=w, minlength=m).astype(np.float64) for w in weights])

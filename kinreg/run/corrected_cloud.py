@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -69,31 +70,58 @@ def write_corrected_las(
             compress = Path(target).suffix.lower() == ".laz"
             progress.start("write cloud", total=header.point_count, unit="points")
             with laspy.open(tmp, mode="w", header=header, do_compress=compress,
-                            laz_backend=_laz_backend() if compress else None) as writer:
-                for points in _chunks(reader, chunk_points, source):
-                    t = np.asarray(points.gps_time, dtype=np.float64) + time_offset_s
-                    finite = np.isfinite(t)
-                    if not finite.all():
-                        points, t = points[finite], t[finite]
-                    xyz = np.column_stack([points.x, points.y, points.z]).astype(np.float64)
-                    if T_obj_cloud is not None:
-                        xyz = T_obj_cloud.apply(xyz)
-                        points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
-                    fixed = correction.apply_to_points(xyz, t)
-                    if observer is not None:
-                        observer.add(xyz, fixed, t)
-                    try:
-                        points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
-                    except OverflowError:
-                        raise CloudError("a corrected coordinate does not fit the input's scale and offset "
-                                         "(32-bit integers)", source) from None
-                    writer.write_points(points)
-                    n += len(points)
-                    progress.advance(len(points))
+                            laz_backend=_laz_backend() if compress else None) as writer, \
+                    ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinreg-decode") as decoding, \
+                    ThreadPoolExecutor(max_workers=1, thread_name_prefix="kinreg-encode") as encoding:
+                # The next chunk is decoded and the previous one encoded on threads while this one is
+                # corrected; one chunk in flight each way keeps memory bounded. lazrs holds the GIL
+                # for a whole call, so they overlap little (about 5 % here, benchmarks/RESULTS.md).
+                chunks = _chunks(reader, chunk_points, source)
+                ahead = decoding.submit(next, chunks, None)
+                written: Future[None] | None = None
+                try:
+                    while (points := ahead.result()) is not None:
+                        ahead = decoding.submit(next, chunks, None)
+                        points = _corrected(points, correction, header, source, T_obj_cloud, time_offset_s, observer)
+                        if written is not None:
+                            written.result()
+                        written = encoding.submit(writer.write_points, points)
+                        n += len(points)
+                        progress.advance(len(points))
+                    if written is not None:
+                        written.result()
+                        written = None
+                finally:
+                    for future in (ahead, written):  # after an error: settled before the writer closes
+                        if future is not None and not future.cancel():
+                            future.exception()
                 if header.evlrs and header.version.minor >= 4:  # laspy's writer leaves them out
                     writer.write_evlrs(header.evlrs)
             progress.finish()
     return n
+
+
+def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Path, T_obj_cloud: Pose | None,
+               time_offset_s: float, observer: PointObserver | None) -> Any:
+    """One chunk's points (a laspy record) with X, Y, Z corrected; points without a finite time
+    left out."""
+    t = np.asarray(points.gps_time, dtype=np.float64) + time_offset_s
+    finite = np.isfinite(t)
+    if not finite.all():
+        points, t = points[finite], t[finite]
+    xyz = np.column_stack([points.x, points.y, points.z])
+    if T_obj_cloud is not None:
+        xyz = T_obj_cloud.apply(xyz)
+        points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
+    fixed = correction.apply_to_points(xyz, t)
+    if observer is not None:
+        observer.add(xyz, fixed, t)
+    try:
+        points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
+    except OverflowError:
+        raise CloudError("a corrected coordinate does not fit the input's scale and offset "
+                         "(32-bit integers)", source) from None
+    return points
 
 
 def _chunks(reader, chunk_points: int, source: Path) -> Iterator:

@@ -85,6 +85,7 @@ from kinreg.run.stages import (
     plan_large_outputs,
     read_input_trajectory,
     read_run_trajectories,
+    start_sequence,
     static_scan_names,
     write_corrected_runs,
     write_sequence,
@@ -272,10 +273,15 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
         views = cloud_views_for_runs(config.report, [r.cloud for r in runs], kinematic.trajectories, references,
                                      inputs.static)
         staging = folder.start_outputs()  # every output goes here first
+        # sequence.e57 on a worker process (where there are local ones) while this one writes the
+        # corrected clouds: both are single-threaded for much of their time.
+        sequence_job = start_sequence(staging, sliced, adjusted.result.poses, plan, executor,
+                                      views.crs.get("wkt", ""))
         corrected = write_corrected_runs(staging, runs, kinematic.trajectories, corrections, plan, folder, config,
                                          references, progress, views)
         clock.lap("corrected cloud")
-        write_sequence(staging, sliced, adjusted.result.poses, plan, folder, progress, views.crs.get("wkt", ""))
+        write_sequence(staging, sliced, adjusted.result.poses, plan, folder, progress, views.crs.get("wkt", ""),
+                       sequence_job)
         clock.lap("sequence E57")
         stack.close()  # the workers and the spill are no longer needed
         report = build_report(

@@ -35,6 +35,7 @@ from kinreg.types import Plane, Scan, ScanKind, SlicingSummary, Trajectory
 
 if TYPE_CHECKING:
     from kinreg.run.output_folder import CachedSlices
+    from kinreg.run.spill import QuasiStaticSequence
     from kinreg.types import BlockResult, Station, TrajectoryJump
 
 # A per-run output of an earlier run in the output folder (or its temporary file).
@@ -111,16 +112,15 @@ def run_correction(stations: Sequence[Station], result: BlockResult, run_index: 
                                          jumps)
 
 
-def adjusted_scans(sliced: Sequence[CachedSlices], poses: Pose) -> Iterator[Scan]:
-    """The quasi-static scans of every run in station order, with their adjusted ``poses``,
-    numbered and named as their stations (:func:`label_run`). The points of each run are read
-    (its spill reopened, or its cloud sliced again) before the first scan is handed out."""
-    sequences = [slices.sequence() for slices in sliced]
+def adjusted_sequence_scans(sequences: Sequence[QuasiStaticSequence], poses: Pose) -> Iterator[Scan]:
+    """The quasi-static scans of every run's sequence (their points read one scan at a time) in
+    station order, with their adjusted ``poses``, numbered and named as their stations
+    (:func:`label_run`). The sequences pickle as their small index: a worker process can write them."""
     first = 0
     for k, sequence in enumerate(sequences):
         for scan in sequence.iter_scans():
             scan_id = first + scan.scan_id
-            yield replace(scan, scan_id=scan_id, name=run_station_name(scan.name, k, len(sliced)),
+            yield replace(scan, scan_id=scan_id, name=run_station_name(scan.name, k, len(sequences)),
                           T_obj_scan=poses[scan_id])
         first += len(sequence)
 

@@ -149,18 +149,33 @@ class QuasiStaticSequence:
         w = self.windows[i]
         a, b = self._unit_ranges[i]
         units = [u for u in range(a, b) if self._store.counts[u]]
-        parts = [np.fromfile(self._store.path(u), dtype=SPILL_RECORD) for u in units]
-        rec = np.concatenate(parts) if len(parts) != 1 else parts[0]
-        origin = np.repeat(self._store.origins[units], [len(p) for p in parts], axis=0)
-        xyz_obj = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64) + origin
+        n = int(self._store.counts[units].sum())
+        xyz, stamps, intensity = np.empty((n, 3)), np.empty(n), np.empty(n, dtype=np.float32)
+        # p_scan = R^T (p_obj - t) with p_obj = offset + the unit's origin: the origin minus t
+        # once per unit (float64, so UTM-sized values keep their precision), then blocks of
+        # offsets whose temporaries stay in the cache.
+        R = np.ascontiguousarray(w.T_obj_scan.rotation_matrix)
+        start = 0
+        for u in units:
+            rec = np.fromfile(self._store.path(u), dtype=SPILL_RECORD)
+            shift = self._store.origins[u] - w.T_obj_scan.t_xyz
+            for k in range(0, len(rec), _BLOCK_POINTS):
+                part = rec[k:k + _BLOCK_POINTS]
+                local = np.empty((len(part), 3))
+                for axis, name in enumerate("xyz"):
+                    np.add(part[name], shift[axis], out=local[:, axis])
+                np.matmul(local, R, out=xyz[start + k:start + k + len(part)])
+            stamps[start:start + len(rec)] = rec["t"]
+            intensity[start:start + len(rec)] = rec["intensity"]
+            start += len(rec)
         return Scan(
             scan_id=w.scan_id,
             name=w.name,
             kind=ScanKind.QUASI_STATIC,
             T_obj_scan=w.T_obj_scan,
-            points_xyz=w.T_obj_scan.apply_inverse(xyz_obj),
-            stamps_s=np.ascontiguousarray(rec["t"]),
-            intensity=np.ascontiguousarray(rec["intensity"]),
+            points_xyz=xyz,
+            stamps_s=stamps,
+            intensity=intensity,
             t_s=w.t_s,
             t_start_s=w.t_start_s,
             t_end_s=w.t_end_s,

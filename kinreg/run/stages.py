@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Iterator, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -46,7 +47,7 @@ from kinreg.run.codecs import links_from_arrays, links_to_arrays, scan_planes_fr
 from kinreg.run.corrected_cloud import PointObserver, write_corrected_las
 from kinreg.run.executor import ExecutorContext, in_process, parallel_map
 from kinreg.run.output_folder import CachedSlices, RunCache, content_parts, dataclass_parts
-from kinreg.run.runs import RunInputs, adjusted_scans, label_run, run_output_names
+from kinreg.run.runs import RunInputs, adjusted_sequence_scans, label_run, run_output_names
 from kinreg.run.spill import QuasiStaticSequence
 from kinreg.types import (
     BlockResult,
@@ -492,15 +493,46 @@ def counted(scans: Iterator[Scan], progress: Progress, stage: str, total: int) -
     progress.finish()
 
 
-def write_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan: LargeOutputs, run: RunCache,
-                   progress: Progress, crs_wkt: str = "") -> None:
-    """``sequence.e57``: the quasi-static scans of every run with their adjusted poses (unless still current)."""
+def start_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan: LargeOutputs,
+                   executor: ExecutorContext, crs_wkt: str = "") -> Future[None] | None:
+    """Start writing ``sequence.e57`` on one of the local worker processes, so that it overlaps
+    the corrected cloud written in this process (the worker reads the scans from the spill), and
+    return its future; ``None`` when it is still current or the executor has no local processes
+    (a Dask worker may not see the output folder): then :func:`write_sequence` writes it."""
+    if "sequence.e57" in plan.current or executor.kind != "processes":
+        return None
+    n_scans = sum(len(slices) for slices in sliced)
+    sequences = [slices.sequence() for slices in sliced]
+    return executor.executor.submit(write_sequence_file, out / "sequence.e57", sequences, poses[np.arange(n_scans)],
+                                    crs_wkt)
+
+
+def write_sequence_file(path: Path, sequences: Sequence[QuasiStaticSequence], poses: Pose, crs_wkt: str = "",
+                        progress: Progress | None = None) -> None:
+    """``sequence.e57`` of the runs' open sequences with the adjusted ``poses`` (a top-level
+    function: it runs on a worker process)."""
     from kinreg.io.e57_writer import write_e57_sequence
 
+    n_scans = sum(len(sequence) for sequence in sequences)
+    scans = adjusted_sequence_scans(sequences, poses)
+    write_e57_sequence(path, counted(scans, progress, "write E57", n_scans) if progress is not None else scans,
+                       overwrite=True, coordinate_metadata=crs_wkt)
+
+
+def write_sequence(out: Path, sliced: Sequence[CachedSlices], poses: Pose, plan: LargeOutputs, run: RunCache,
+                   progress: Progress, crs_wkt: str = "", started: Future[None] | None = None) -> None:
+    """``sequence.e57``: the quasi-static scans of every run with their adjusted poses (unless still
+    current); with ``started`` (:func:`start_sequence`), waits for the worker writing it."""
     done = "sequence.e57" in plan.current
     if not done:
         n_scans = sum(len(slices) for slices in sliced)
-        write_e57_sequence(out / "sequence.e57", counted(adjusted_scans(sliced, poses), progress, "write E57", n_scans),
-                           overwrite=True, coordinate_metadata=crs_wkt)
+        if started is not None:
+            progress.start("write E57", total=n_scans, unit="scans")
+            started.result()  # raises the worker's error
+            progress.advance(n_scans)
+            progress.finish()
+        else:
+            write_sequence_file(out / "sequence.e57", [slices.sequence() for slices in sliced],
+                                poses[np.arange(n_scans)], crs_wkt, progress)
         run.record_output("sequence.e57", plan.keys["sequence.e57"])
     run.count("sequence E57", reused=int(done), computed=int(not done))
