@@ -78,13 +78,13 @@ def station_errors(out: Path, truth) -> dict:
             "z": (e / sigma).tolist()}
 
 
-def evaluate(seed: int, work: Path) -> dict:
+def _simulated(seed: int, work: Path):
+    """The sample scenario's run of ``seed`` with its stand-stills, written to ``work/data``:
+    the run, the data folder and the true trajectory."""
     from eval_accuracy import scenario_config
 
-    from kinreg.config import KinregConfig
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.run.pipeline import ProcessInputs, process
-    from kinreg.simulation.files import control_csv, write_run
+    from kinreg.simulation.files import write_run
     from kinreg.simulation.run import simulate_run
 
     cfg = scenario_config("sample", seed=seed)
@@ -92,7 +92,32 @@ def evaluate(seed: int, work: Path) -> dict:
     run = simulate_run(cfg)
     data = work / "data"
     write_run(run, data)
-    truth = read_trajectory(data / "truth_trajectory.txt")
+    return run, data, read_trajectory(data / "truth_trajectory.txt")
+
+
+def _figures(report: dict, out: Path, truth, moved, row_keys: tuple[str, ...], t0: float) -> dict:
+    """What a case's ``report.json`` and ``stations.csv`` say (its ``moved`` point, the datum,
+    station errors, rejected points, control rows with ``row_keys``, check points, LOA)."""
+    return {
+        "moved": moved, "datum": report["adjustment"]["datum"],
+        "stations": station_errors(out, truth),
+        "rejected_points": report["control"]["rejected"],
+        "control_rows": [{k: r[k] for k in row_keys} for r in report["control"]["rows"]],
+        "check_mm": {"corrected": report["check"]["summary"]["d3d_mm"],
+                     "input": report["check"]["summary_input"]["d3d_mm"],
+                     "corrected_horizontal": report["check"]["summary"]["horizontal_mm"],
+                     "corrected_vertical": report["check"]["summary"]["vertical_mm"]},
+        "loa": report["check"]["loa"]["class"],
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def evaluate(seed: int, work: Path) -> dict:
+    from kinreg.config import KinregConfig
+    from kinreg.run.pipeline import ProcessInputs, process
+    from kinreg.simulation.files import control_csv
+
+    run, data, truth = _simulated(seed, work)
     _, true_xyz = run.control_points(noise=False)
     names = [f"CP{k + 1:02d}" for k in range(N_STAND_STILLS)]
     result: dict = {"seed": seed}
@@ -111,19 +136,8 @@ def evaluate(seed: int, work: Path) -> dict:
         process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz", control=control, check=check),
                 out, KinregConfig(), overwrite=True)
         report = json.loads((out / "report.json").read_text())
-        result[label] = {
-            "control": control_names, "moved": moved, "datum": report["adjustment"]["datum"],
-            "stations": station_errors(out, truth),
-            "rejected_points": report["control"]["rejected"],
-            "control_rows": [{k: r[k] for k in ("name", "d3d_mm", "normalised", "decision")}
-                             for r in report["control"]["rows"]],
-            "check_mm": {"corrected": report["check"]["summary"]["d3d_mm"],
-                         "input": report["check"]["summary_input"]["d3d_mm"],
-                         "corrected_horizontal": report["check"]["summary"]["horizontal_mm"],
-                         "corrected_vertical": report["check"]["summary"]["vertical_mm"]},
-            "loa": report["check"]["loa"]["class"],
-            "wall_s": time.perf_counter() - t0,
-        }
+        result[label] = {"control": control_names,
+                         **_figures(report, out, truth, moved, ("name", "d3d_mm", "normalised", "decision"), t0)}
         s = result[label]["stations"]
         print(f"seed {seed} {label}: stations RMS {s['rms_mm']:.2f} max {s['max_mm']:.2f} mm, "
               f"check RMS {result[label]['check_mm']['corrected']['rms']:.2f} mm "
@@ -148,21 +162,12 @@ TARGET_CASES = ("t3x4", "t1x4", "wrong")
 
 
 def evaluate_targets(seed: int, work: Path) -> dict:
-    from eval_accuracy import scenario_config
-
     from kinreg.config import KinregConfig
     from kinreg.errors import KinregError
-    from kinreg.io.trajectory import read_trajectory
     from kinreg.run.pipeline import ProcessInputs, process
-    from kinreg.simulation.files import control_csv, static_targets_csv, write_run, write_static_e57
-    from kinreg.simulation.run import simulate_run
+    from kinreg.simulation.files import control_csv, static_targets_csv, write_static_e57
 
-    cfg = scenario_config("sample", seed=seed)
-    cfg = dataclasses.replace(cfg, walk=dataclasses.replace(cfg.walk, stand_stills=N_STAND_STILLS))
-    run = simulate_run(cfg)
-    data = work / "data"
-    write_run(run, data)
-    truth = read_trajectory(data / "truth_trajectory.txt")
+    run, data, truth = _simulated(seed, work)
     misregistered = run.static_scans_misregistered(0.02, 0.1)
     write_static_e57(work / "static_all.e57", misregistered)
     write_static_e57(work / "static_room.e57", misregistered[1:2])
@@ -185,20 +190,9 @@ def evaluate_targets(seed: int, work: Path) -> dict:
             print(f"seed {seed} {label}: failed: {e}", flush=True)
             continue
         report = json.loads((out / "report.json").read_text())
-        result[label] = {
-            "moved": moved, "datum": report["adjustment"]["datum"],
-            "stations": station_errors(out, truth),
-            "static": static_errors(out, run.static_scans),
-            "rejected_points": report["control"]["rejected"],
-            "control_rows": [{k: r[k] for k in ("name", "scan", "d3d_mm", "normalised", "decision", "input_d3d_mm")}
-                             for r in report["control"]["rows"]],
-            "check_mm": {"corrected": report["check"]["summary"]["d3d_mm"],
-                         "input": report["check"]["summary_input"]["d3d_mm"],
-                         "corrected_horizontal": report["check"]["summary"]["horizontal_mm"],
-                         "corrected_vertical": report["check"]["summary"]["vertical_mm"]},
-            "loa": report["check"]["loa"]["class"],
-            "wall_s": time.perf_counter() - t0,
-        }
+        result[label] = {"static": static_errors(out, run.static_scans),
+                         **_figures(report, out, truth, moved,
+                                    ("name", "scan", "d3d_mm", "normalised", "decision", "input_d3d_mm"), t0)}
         s, st = result[label]["stations"], result[label]["static"]
         print(f"seed {seed} {label}: stations RMS {s['rms_mm']:.2f} max {s['max_mm']:.2f} mm, static RMS "
               f"{st['rms_mm']:.2f} mm, check RMS {result[label]['check_mm']['corrected']['rms']:.2f} mm "

@@ -56,6 +56,12 @@ def test_reader_reads_points_in_any_column_order(tmp_path):
     ("name,x,y,z,sigma_mm\nA,1,2,3\n", "4 values for 5 columns"),
     ("name,x,y,z,sigma_mm\n", "no points"),
     ("", "empty"),
+    # targets in static scans (station, sx, sy, sz)
+    ("name,x,y,z,sigma_mm,station,sx,sy\nT1,1,2,3,3,s,1,2\n", "without sz"),
+    ("name,x,y,z,sigma_mm,station,sx,sy,sz\nT1,1,2,3,3,s,1,2,\n", "line 2: target T1 in static scan s: sz missing"),
+    ("name,x,y,z,sigma_mm,station,sx,sy,sz\nT1,1,2,3,3,s,1,nan,3\n", "line 2: point T1: sy is not a finite number"),
+    ("name,x,y,z,sigma_mm,station,sx,sy,sz\nT1,1,2,3,3,,1,2,3\n", "sx,sy,sz given without a station"),
+    ("name,x,y,z,sigma_mm,station,sx,sy,sz,t_start,t_end\nT1,1,2,3,3,s,1,2,3,5,6\n", "leave t_start,t_end empty"),
 ])
 def test_reader_names_the_file_and_the_problem(tmp_path, text, reason):
     path = tmp_path / "bad.csv"

@@ -13,7 +13,7 @@ from kinreg.types import Trajectory
 
 def _exact(c: DriftCorrection, xyz: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Today's formula at every point: R(t) (x - p(t)) + p(t) + delta(t) from the spline."""
-    rotvec, delta, pivot = c._at(t)
+    rotvec, delta, pivot = c.at(t)
     R = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix
     return np.einsum("nij,nj->ni", R, xyz - pivot) + pivot + delta
 

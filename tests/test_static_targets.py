@@ -18,7 +18,7 @@ from kinreg.estimate.control import assign_points, control_observations, target_
 from kinreg.estimate.datum import adjust_network, build_network, screen_control_points
 from kinreg.estimate.drift import DriftRates
 from kinreg.geometry import Pose, rotvec_to_quat
-from kinreg.io.control import parse_control_points, read_control_points
+from kinreg.io.control import parse_control_points
 from kinreg.progress import NullProgress
 from kinreg.types import ScanKind, Station
 
@@ -36,21 +36,6 @@ def test_reader_reads_target_rows_beside_stand_still_rows():
     t1 = points.targets[0]
     assert t1.station == "scan_a" and np.allclose(t1.scan_xyz, [4.0, -1.0, 0.5]) and t1.sigma_m == pytest.approx(0.002)
     assert t1.line == 3
-
-
-@pytest.mark.parametrize(("text", "reason"), [
-    ("name,x,y,z,sigma_mm,station,sx,sy\nT1,1,2,3,3,s,1,2\n", "without sz"),
-    ("name,x,y,z,sigma_mm,station,sx,sy,sz\nT1,1,2,3,3,s,1,2,\n", "line 2: target T1 in static scan s: sz missing"),
-    ("name,x,y,z,sigma_mm,station,sx,sy,sz\nT1,1,2,3,3,s,1,nan,3\n", "line 2: point T1: sy is not a finite number"),
-    ("name,x,y,z,sigma_mm,station,sx,sy,sz\nT1,1,2,3,3,,1,2,3\n", "sx,sy,sz given without a station"),
-    ("name,x,y,z,sigma_mm,station,sx,sy,sz,t_start,t_end\nT1,1,2,3,3,s,1,2,3,5,6\n", "leave t_start,t_end empty"),
-])
-def test_reader_names_the_file_the_row_and_the_problem_of_a_target(tmp_path, text, reason):
-    path = tmp_path / "bad.csv"
-    path.write_text(text)
-    with pytest.raises(InputError) as info:
-        read_control_points(path)
-    assert reason in str(info.value) and str(path) in str(info.value)
 
 
 def test_targets_name_their_static_scan_by_name_or_position():

@@ -75,7 +75,7 @@ class DriftCorrection:
         """Per time (n,): the map that takes the jumps out (see :func:`jump_removal`)."""
         return jump_removal(self.jump_times_s, self.jump_steps, stamps_s)
 
-    def _at(self, query_s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    def at(self, query_s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Rotation vectors, shifts and pivots (each (n, 3)) at the times ``query_s`` (n,)."""
         pivots = self.pivot_xyz
         if pivots is None:
@@ -110,7 +110,7 @@ class DriftCorrection:
         nodes = lo + POINT_GRID_S * np.arange(int(np.ceil((hi - lo) / POINT_GRID_S)) + 2)
         # the first and last station are nodes too: the correction is held constant beyond them
         grid: FloatArray = np.union1d(nodes, self.stamps_s[[0, -1]]).astype(np.float64)
-        rotvec, delta, pivot = self._at(grid)
+        rotvec, delta, pivot = self.at(grid)
         A = Pose(rotvec_to_quat(rotvec), np.zeros_like(delta)).rotation_matrix - np.eye(3)
         origin = pivot[0]  # interpolated relative to it: UTM-sized values keep their precision
         # np.interp's formula (value at the node below plus slope times the time since it), for
@@ -137,7 +137,7 @@ class DriftCorrection:
             unjumped = self.without_jumps(trajectory.stamps_s).compose(trajectory.poses)
             trajectory = Trajectory(trajectory.stamps_s, unjumped, trajectory.source, trajectory.extra,
                                     trajectory.extra_names)
-        rotvec, delta, pivot = self._at(trajectory.stamps_s)
+        rotvec, delta, pivot = self.at(trajectory.stamps_s)
         q_corr = rotvec_to_quat(rotvec)
         q = quat_normalize(quat_multiply(q_corr, trajectory.poses.quat_wxyz))
         R = Pose(q_corr, np.zeros_like(delta)).rotation_matrix

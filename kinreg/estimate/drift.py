@@ -138,14 +138,13 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
         initial, adjusted = result.poses_initial[ks], result.poses[ks]
         correction = DriftCorrection.from_stations(stamps, initial, adjusted, Trajectory(stamps, initial))
         for m, k in enumerate(ks):
-            if out[k]:
-                moved = []
-                for p in out[k]:
-                    plane = _deskewed(p, _WindowMap(correction, float(stamps[m]), initial[m], adjusted[m],
-                                                    rates.coupling, rho_pos, rho_rot))
-                    largest = max(largest, float(np.linalg.norm(plane.centroid_xyz - p.centroid_xyz)))
-                    moved.append(plane)
-                out[k] = tuple(moved)
+            if not out[k]:
+                continue
+            window = _WindowMap.at_centre(correction, float(stamps[m]), initial[m], adjusted[m], rates.coupling,
+                                          rho_pos, rho_rot)
+            out[k] = tuple(_deskewed(p, window) for p in out[k])
+            largest = max([largest] + [float(np.linalg.norm(a.centroid_xyz - b.centroid_xyz))
+                                       for a, b in zip(out[k], planes[k], strict=True)])
     return out, largest
 
 
@@ -161,12 +160,23 @@ class _WindowMap:
     coupling: float
     rho_pos: float
     rho_rot: float
+    # the correction at the centre: rotation vector, shift, pivot, rotation matrix
+    r_c: FloatArray
+    delta_c: FloatArray
+    p_c: FloatArray
+    R_0: FloatArray
+
+    @classmethod
+    def at_centre(cls, correction: DriftCorrection, t_s: float, initial: Pose, adjusted: Pose, coupling: float,
+                  rho_pos: float, rho_rot: float) -> _WindowMap:
+        (r_c,), (delta_c,), (p_c,) = correction.at(np.array([t_s]))
+        return cls(correction, t_s, initial, adjusted, coupling, rho_pos, rho_rot, r_c, delta_c, p_c,
+                   Pose(rotvec_to_quat(r_c), np.zeros(3)).rotation_matrix)
 
     def __call__(self, x: FloatArray, tau: FloatArray) -> FloatArray:
-        (r_c,), (delta_c,), (p_c,) = self.correction._at(np.array([self.t_s]))
-        rotvec, delta, pivot = self.correction._at(self.t_s + tau)
-        R_0 = Pose(rotvec_to_quat(r_c), np.zeros(3)).rotation_matrix
-        rigid = (pivot - p_c) @ (R_0 - np.eye(3)).T  # the centre's rotation about the moving pivot
+        rotvec, delta, pivot = self.correction.at(self.t_s + tau)
+        r_c, delta_c = self.r_c, self.delta_c
+        rigid = (pivot - self.p_c) @ (self.R_0 - np.eye(3)).T  # the centre's rotation about the moving pivot
         delta = delta_c + (1.0 - self.coupling) * rigid + self.rho_pos * (delta - delta_c - rigid)
         R_c = Pose(rotvec_to_quat(r_c + self.rho_rot * (rotvec - r_c)), np.zeros_like(delta)).rotation_matrix
         y = x @ self.initial.rotation_matrix.T + self.initial.t_xyz

@@ -75,9 +75,9 @@ def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[St
     if scan.stamps_s is not None:
         offsets, slopes = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found,
                                              config.refit_distance_m)
-        found = tuple(dataclasses.replace(p, t_offset_s=float(t), t_slope_s_per_m=(float(g[0]), float(g[1])))
-                      if np.isfinite(t) and np.all(np.isfinite(g)) else
-                      (dataclasses.replace(p, t_offset_s=float(t)) if np.isfinite(t) else p)
+        found = tuple(p if not np.isfinite(t) else dataclasses.replace(
+                          p, t_offset_s=float(t),
+                          t_slope_s_per_m=(float(g[0]), float(g[1])) if np.all(np.isfinite(g)) else p.t_slope_s_per_m)
                       for p, t, g in zip(found, offsets, slopes, strict=True))
         tau = rms_time_offset(offsets)
     station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
