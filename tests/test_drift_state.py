@@ -224,3 +224,73 @@ def test_the_jacobians_of_a_coupled_trajectory_link_match_finite_differences(kap
             numeric[:, axis] = (e1[0] - e0[0]) / 1e-7
         scale = max(1.0, np.abs(numeric).max())
         assert np.allclose(J[0, node], numeric, atol=2e-2 * scale), (node, J[0, node], numeric)
+
+
+def _coupling_case(model: str, noise_rad: float, seed: int = 0):
+    """A walk with a growing heading error, drifted as ``model`` ("gnss": positions right, attitude
+    off; "slam": the whole walk turned with it), plane links of each station to its next two with
+    the true relative poses, and an adjustment that found the true poses up to ``noise_rad`` of
+    heading per station."""
+    from kinreg.types import Link, LinkStatus
+
+    rng = np.random.default_rng(seed)
+    n = 30
+    t = 6.0 * np.arange(n)
+    yaw = 0.4 * np.sin(t / 40.0)
+    truth = Pose(np.column_stack([np.cos(yaw / 2), 0 * t, 0 * t, np.sin(yaw / 2)]),
+                 np.column_stack([10 * np.cos(t / 40.0), 8 * np.sin(t / 30.0), 0 * t]))
+    heading = np.radians(0.4) * t / t[-1]  # the attitude error D(t), about z
+    D = Pose.exp(np.column_stack([np.zeros((n, 5)), heading]))
+    if model == "gnss":
+        xyz = truth.t_xyz
+    else:  # dead reckoning: each step turned by the attitude error at its start
+        steps = np.einsum("nij,nj->ni", D.rotation_matrix[:-1], np.diff(truth.t_xyz, axis=0))
+        xyz = truth.t_xyz[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+    initial = Pose(D.compose(truth).quat_wxyz, xyz)
+    found = truth.compose(Pose.exp(np.column_stack([np.zeros((n, 5)), noise_rad * rng.standard_normal(n)])))
+    stations = [Station(k, f"s{k}", ScanKind.QUASI_STATIC, t[k], t[k] - 3, t[k] + 3, initial[k], 1000)
+                for k in range(n)]
+    info = np.diag(1.0 / np.square([5e-4, 5e-4, 5e-4, 5e-5, 5e-5, 5e-5]))
+    links = []
+    for i in range(n):
+        for j in (i + 1, i + 2):
+            if j < n:
+                rel = truth[i].inverse().compose(truth[j])
+                links.append(Link(i, j, LinkStatus.OK, rel, np.linalg.inv(info), rel, rel, info, 6, np.zeros(6), 3,
+                                  1.0, 10, True, (), (), 0.0, t[j] - t[i]))
+    cov = np.zeros((n, 6, 6))
+    cov[:, 3:, 3:] = np.eye(3) * noise_rad**2
+    result = SimpleNamespace(poses=found, poses_initial=initial, tests=(), cov_xi=cov)
+    return stations, links, result
+
+
+@pytest.mark.parametrize("model, expected", [("gnss", 1.0), ("slam", 0.0)])
+def test_the_coupling_is_read_off_the_planes_own_steps(model, expected):
+    """GNSS/INS-like (the object-frame step right, the attitude error turns it in the scan's
+    frame) reads 1, SLAM-like (the whole walk turned with the heading) 0, from the planes' relative
+    poses; with the adjusted heading 1 mrad off per station, the noise of the attitude does not
+    pull the coupling towards 0 (without the correction it reads 0.87-0.92 here)."""
+    from kinreg.estimate.drift import coupling_from_links
+
+    prior = DriftRates(np.full(3, 3e-4), np.full(3, 5e-5), 1e-3, 1e-4)
+    for noise in (0.0, 1e-3):
+        stations, links, result = _coupling_case(model, noise)
+        kappa = coupling_from_links(stations, links, result, prior)
+        assert kappa == pytest.approx(expected, abs=0.05 if noise else 1e-3)
+    stations, links, result = _coupling_case(model, 0.0)
+    assert coupling_from_links(stations, links[:4], result, prior) is None  # too few links to say
+
+
+def test_the_coupling_settles_where_it_measures_itself():
+    """Planes deskewed with a coupling lean towards it: the measured coupling lies between the
+    used one and the run's own. The secant over two rounds lands on the fixed point."""
+    from kinreg.run.stages import _settled_coupling
+
+    def measured(used):
+        return 0.5 * used + 0.45  # the run's own coupling: 0.9
+
+    tried = [(0.2, measured(0.2))]
+    assert _settled_coupling(tried) == pytest.approx(measured(0.2))
+    tried.append((0.55, measured(0.55)))
+    assert _settled_coupling(tried) == pytest.approx(0.9)
+    assert _settled_coupling([(0.0, 0.0), (0.0, 0.0)]) == 0.0

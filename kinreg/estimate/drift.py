@@ -13,7 +13,17 @@ import numpy as np
 from kinreg.config import DriftConfig
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, rotvec_to_quat, skew
-from kinreg.types import BlockResult, ObservationKind, Plane, RelativeObservation, ScanKind, Station, Trajectory
+from kinreg.types import (
+    BlockResult,
+    Link,
+    LinkStatus,
+    ObservationKind,
+    Plane,
+    RelativeObservation,
+    ScanKind,
+    Station,
+    Trajectory,
+)
 
 
 def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
@@ -336,15 +346,18 @@ def window_velocity_covariance(stations: Sequence[Station], result: BlockResult,
 
 
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates,
-                         floor_share: float = 1.0, measure_correlation: bool = True) -> DriftRates:
+                         floor_share: float = 1.0, measure_correlation: bool = True,
+                         links: Sequence[Link] = ()) -> DriftRates:
     """The trajectory's error model measured by the adjustment, from consecutive quasi-static
     stations of each run: the adjusted step ``y`` against the two predictions of the trajectory's
     step, ``u`` (its step in the scan frame was right: the initial step turned by the first
     station's correction) and ``w`` (its object-frame step was right: the initial step itself).
     The coupling ``kappa`` (:class:`DriftRates`) is the least-squares share of ``w`` in
-    ``y = u + kappa (w - u)``, within [0, 1], each link weighted by how far the planes control it
-    (its redundancy share: a link that only the trajectory determines repeats the model it was
-    adjusted with); the position rate is the RMS per object axis of what
+    ``y = u + kappa (w - u)``, within [0, 1]: with ``links``, measured on the planes' own relative
+    poses (:func:`coupling_from_links`), which do not lean on the coupling the adjustment was made
+    with; without (or with too few), on the adjusted steps, each link weighted by how far the
+    planes control it (its redundancy share: a link that only the trajectory determines repeats
+    the model it was adjusted with); the position rate is the RMS per object axis of what
     is left over the time difference (:func:`_rms_rate`), the rotation rate that of the change of
     the correction's rotation, each less the adjustment's own noise in it (the covariance of the
     adjusted relative pose, from the block's trajectory-link tests). The estimate is bounded below
@@ -390,6 +403,8 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     c = np.array(weight)[:, None]
     spread = float(np.sum(c * (W - U) ** 2))
     kappa = float(np.clip(np.sum(c * (W - U) * (Y - U)) / spread, 0.0, 1.0)) if spread > 1e-12 else 0.0
+    from_links = coupling_from_links(stations, links, result, prior)
+    kappa = kappa if from_links is None else from_links
     pos_v = (Y - U - kappa * (W - U)) / np.array(dts)[:, None]
     pos_rate = _rms_rate(pos_v, np.array(pos_noise))
     rot_rate = _rms_rate(np.array(rot_v), np.array(rot_noise))
@@ -400,6 +415,72 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
                       np.maximum(floor_share * prior.rot_rad_per_s, rot_rate),
                       prior.pos_floor_m, prior.rot_floor_rad, estimated=True, coupling=kappa,
                       correlation_s=correlation)
+
+
+# Fewer plane links of consecutive-enough stations than this leave the coupling to the adjusted steps.
+_MIN_COUPLING_LINKS = 5
+# Plane links over more than this many station spacings carry too much of the trajectory's own drift.
+_COUPLING_SPACINGS = 3.0
+
+
+def coupling_from_links(stations: Sequence[Station], links: Sequence[Link], result: BlockResult,
+                        rates: DriftRates) -> float | None:
+    """The coupling ``kappa`` (:class:`DriftRates`) that the plane links between stations of one run
+    point to, or None with fewer than a handful of them.
+
+    For a link of scans ``a`` and ``b``, the trajectory predicts the step in scan ``a``'s frame in
+    two ways: ``u = R_a^T (x_b - x_a)`` with the trajectory's own attitude (its relative motion is
+    right in the scan's frame: SLAM, or one rigid drift of the world) and ``w = R'_a^T (x_b - x_a)``
+    with the adjusted attitude (its object-frame step is right, the attitude error turns it:
+    GNSS/INS, a tracker). The planes alone measure the step (``T_i_j_planes``); ``kappa`` is the
+    generalised least-squares share of ``w - u`` in the planes' step less ``u``, weighted by the
+    planes' information together with the trajectory's drift over the link. Unlike the adjusted
+    steps, the planes' relative poses do not depend on the coupling the adjustment used, where the
+    planes leave a direction to the trajectory (the adjustment then repeats its own model); the
+    adjusted attitude ``R'_a`` is fixed by the planes' rotations, whatever the coupling."""
+    by_run: dict[int, list[float]] = {}
+    for s in stations:
+        if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s):
+            by_run.setdefault(s.run, []).append(s.t_s)
+    spacing = {run: float(np.median(np.diff(np.sort(t)))) for run, t in by_run.items() if len(t) > 1}
+    num, den, n = 0.0, 0.0, 0
+    cov_xi = getattr(result, "cov_xi", None)
+    for link in links:
+        a, b = link.scan_i, link.scan_j
+        sa, sb = stations[a], stations[b]
+        if (link.status is not LinkStatus.OK or sa.kind is not ScanKind.QUASI_STATIC
+                or sb.kind is not ScanKind.QUASI_STATIC or sa.run != sb.run or sa.run not in spacing
+                or not (np.isfinite(sa.t_s) and np.isfinite(sb.t_s))):
+            continue
+        dt = abs(sb.t_s - sa.t_s)
+        if dt > _COUPLING_SPACINGS * spacing[sa.run]:
+            continue
+        Ta, Tb = result.poses_initial[a], result.poses_initial[b]
+        step = Tb.t_xyz - Ta.t_xyz
+        T_u = Ta.inverse().compose(Tb)
+        R_u = T_u.rotation_matrix
+        u = T_u.t_xyz
+        w = result.poses[a].rotation_matrix.T @ step
+        # Right-perturbation twists of the planes' pose and of w about the prediction u (scan b's axes).
+        e = np.zeros(6)
+        e[:3] = R_u.T @ (link.T_i_j_planes.t_xyz - u)
+        e[3:] = T_u.inverse().compose(link.T_i_j_planes).log()[3:]
+        g = np.zeros(6)
+        g[:3] = R_u.T @ (w - u)
+        info = 0.5 * (link.info_planes + link.info_planes.T)
+        cov = np.linalg.inv(info + 1e-6 * np.eye(6)) + rates.covariance(dt, Tb)
+        W = np.linalg.inv(cov)
+        num += float(g @ W @ e)
+        den += float(g @ W @ g)
+        if cov_xi is not None:
+            # w's own error (the adjusted attitude's, dw = [w]x dphi) inflates g'W g by its trace:
+            # taken out, or the noise of the attitude would pull kappa towards 0.
+            J = R_u.T @ skew(w)
+            den -= float(np.trace(W[:3, :3] @ J @ cov_xi[a][3:, 3:] @ J.T))
+        n += 1
+    if n < _MIN_COUPLING_LINKS or den <= 0.0:
+        return None
+    return float(np.clip(num / den, 0.0, 1.0))
 
 
 def _correlation_times(ends: list[tuple[int, int]], dts: np.ndarray, pos_v: np.ndarray,

@@ -221,13 +221,14 @@ def adjust_with_measured_drift(
     prior_rates = DriftRates.from_config(config.drift)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
-                                 config.drift.measure_correlation)
+                                 config.drift.measure_correlation, network.links)
     # The correlation of the drift is measured once, on the first adjustment, whose links are
     # independent: an adjustment that already carries a smooth drift through the stretches no
     # plane fixes would find it smooth there because it made it so.
     correlation = rates.correlation_s
     linked_with = prior_rates
-    for _ in range(config.block.max_relink_rounds):
+    tried: list[tuple[float, float]] = []  # (coupling deskewed and adjusted with, coupling it measured)
+    for round_ in range(config.block.max_relink_rounds + _COUPLING_ROUNDS):
         # Matched again from the adjusted poses: pairs that the trajectory's drift kept apart or
         # out of the gates (loop closures) are linked now, and the planes' window deformation
         # follows the measured rates. Until the set of linked pairs no longer changes. Links whose
@@ -248,9 +249,13 @@ def adjust_with_measured_drift(
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
         network = replace(network.with_links(links), velocity_cov=velocity_cov)
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
+        used = rates.coupling
         rates = replace(estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
-                                             measure_correlation=False), correlation_s=correlation)
-        if same:
+                                             measure_correlation=False, links=network.links),
+                        correlation_s=correlation)
+        tried.append((used, rates.coupling))
+        rates = replace(rates, coupling=_settled_coupling(tried))
+        if abs(rates.coupling - used) < _COUPLING_TOLERANCE and (same or round_ + 1 >= config.block.max_relink_rounds):
             break
     # Control points tested against their own sigmas, then the last pass: the trajectory's links
     # coupled with the measured coupling and rates.
@@ -260,6 +265,27 @@ def adjust_with_measured_drift(
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
     return AdjustedNetwork(network, result, rates)
+
+
+# The coupling is settled when the next round would deskew with one this close to the last; until it
+# is, up to this many rounds more than [block] max_relink_rounds.
+_COUPLING_TOLERANCE = 0.05
+_COUPLING_ROUNDS = 2
+
+
+def _settled_coupling(tried: Sequence[tuple[float, float]]) -> float:
+    """The coupling to deskew and adjust with next: the one that would measure itself. Planes
+    deskewed with a coupling lean towards it, so the coupling measured after a round lies between
+    the one used and the run's own, and repeating rounds creeps up on it; from the last two rounds
+    the secant finds where the measured and the used coupling agree (within [0, 1])."""
+    used, found = tried[-1]
+    if len(tried) < 2:
+        return found
+    (u0, f0), (u1, f1) = tried[-2], tried[-1]
+    g0, g1 = f0 - u0, f1 - u1
+    if abs(u1 - u0) < 1e-6 or abs(g1 - g0) < 1e-6:
+        return found
+    return float(np.clip(u1 - g1 * (u1 - u0) / (g1 - g0), 0.0, 1.0))
 
 
 def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
