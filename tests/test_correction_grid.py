@@ -42,3 +42,33 @@ def test_identity_correction_leaves_points_exactly_as_they_are() -> None:
     xyz = traj.poses.t_xyz + 3.0
     assert np.array_equal(correction.apply_to_points(xyz, traj.stamps_s), xyz)
     assert correction.apply_to_points(np.zeros((0, 3)), np.zeros(0)).shape == (0, 3)
+
+
+@pytest.mark.parametrize("coupling", [0.0, 1.0])
+def test_a_coupled_attitude_error_turns_points_about_the_sensor_where_it_was(coupling) -> None:
+    """GNSS/INS-like: the positions are right and the attitude is off by a heading error that grows
+    along the run, so a point seen at time t is off by that error turned about the sensor at t,
+    sway and turns included. With the coupling 1 the correction turns it back about the
+    trajectory's own position; the stations' spline as pivot (coupling 0) is what a SLAM-like drift
+    needs, and here misses by the heading error times the sway (5 mrad x 0.3 m = 1.5 mm)."""
+    t = np.arange(0.0, 60.0, 0.01)
+    xyz = np.column_stack([0.5 * t, 0.3 * np.sin(2 * np.pi * t / 5.0), 0 * t])  # sway of 0.3 m at 0.2 Hz
+    truth = Trajectory(t, Pose(np.tile([1.0, 0, 0, 0], (len(t), 1)), xyz))
+    heading = 5e-3 * t / t[-1]  # [rad]
+    D = Pose(rotvec_to_quat(np.column_stack([0 * t, 0 * t, heading])), np.zeros((len(t), 3)))
+    exported = Trajectory(t, Pose(D.compose(truth.poses).quat_wxyz, xyz))  # positions right, attitude off
+    stamps = np.arange(3.0, 60.0, 6.0)
+    initial, adjusted = exported.pose_at(stamps), truth.pose_at(stamps)
+    correction = DriftCorrection.from_stations(stamps, initial, adjusted, exported, coupling=coupling)
+    rng = np.random.default_rng(3)
+    when = rng.uniform(stamps[0], stamps[-1], 2000)
+    in_sensor = rng.uniform(-5.0, 5.0, (2000, 3))
+    seen = exported.pose_at(when).apply(in_sensor)
+    error = np.linalg.norm(correction.apply_to_points(seen, when) - truth.pose_at(when).apply(in_sensor), axis=1)
+    if coupling == 1.0:
+        assert error.max() < 1e-5
+    else:
+        assert error.max() > 5e-4
+    corrected = correction.apply_to_trajectory(exported)
+    position_error = np.abs(corrected.poses.t_xyz - xyz).max()
+    assert (position_error < 1e-9) if coupling == 1.0 else (position_error > 5e-4)

@@ -12,7 +12,12 @@ before the first and after the last station the end values are held. The pivot `
 spline through the stations' positions, not the trajectory's own position: then a correction
 that is one rigid transform for all stations (e.g. what is left of a rough initial transform) is
 reproduced exactly between them, and a slowly turning one carries no lever arm to the sway and
-the turns of the path between stations (a tenth of a degree over a metre is 2 mm).
+the turns of the path between stations (a tenth of a degree over a metre is 2 mm). That is so
+where the trajectory's attitude error is integrated into its positions (SLAM). Where the positions
+are measured apart from the attitude (GNSS/INS, a tracker: the drift's ``coupling`` 1), the
+attitude error turns each point about where the sensor was when it measured it: the pivot is then
+the trajectory's own position, its sway and its turns between stations included (in the share
+``coupling`` between the two).
 
 Jumps of the trajectory (:mod:`kinreg.estimate.jumps`) are taken out first: a point or pose after
 jumps ``S_1 ... S_k`` is mapped by ``S_1^-1 ... S_k^-1`` (a point inside a jump's sample interval,
@@ -59,17 +64,23 @@ class DriftCorrection:
     pivot_xyz: FloatArray | None = None
     jump_times_s: FloatArray | None = None  # (m, 2): each jump's sample interval (before, at), in time order
     jump_steps: Pose | None = None  # (m,): the steps S (T_traj = S . T_continuous from the jump on)
+    # How far the rotation turns about the trajectory's own position rather than the spline through
+    # the stations' (kinreg.estimate.drift.DriftRates.coupling): 1 where the attitude error turns the
+    # points about the sensor wherever it is (GNSS/INS, a tracker), 0 where it is one rigid motion
+    # between stations (SLAM, a rigid drift of the world).
+    coupling: float = 0.0
 
     @classmethod
     def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose, trajectory: Trajectory,
-                      jumps: Sequence[TrajectoryJump] = ()) -> DriftCorrection:
+                      jumps: Sequence[TrajectoryJump] = (), coupling: float = 0.0) -> DriftCorrection:
         """From the initial and adjusted poses of the time-stamped stations (sorted by time).
-        With ``jumps``, ``initial`` are the stations' poses without them (:meth:`without_jumps`)."""
+        With ``jumps``, ``initial`` are the stations' poses without them (:meth:`without_jumps`).
+        ``coupling``: see the field."""
         order = np.argsort(stamps_s)
         q_corr = quat_multiply(adjusted.quat_wxyz[order], initial.inverse().quat_wxyz[order])
         return cls(np.asarray(stamps_s, dtype=np.float64)[order], quat_to_rotvec(q_corr),
                    adjusted.t_xyz[order] - initial.t_xyz[order], trajectory, initial.t_xyz[order],
-                   *jump_arrays(jumps))
+                   *jump_arrays(jumps), coupling=float(coupling))
 
     def without_jumps(self, stamps_s: FloatArray) -> Pose:
         """Per time (n,): the map that takes the jumps out (see :func:`jump_removal`)."""
@@ -91,7 +102,17 @@ class DriftCorrection:
         spline = CubicSpline(self.stamps_s, np.hstack([self.rotvec, self.delta_m, pivots - origin]),
                              bc_type="natural")
         values = spline(t)
-        return values[:, :3], values[:, 3:6], values[:, 6:] + origin
+        pivot = values[:, 6:] + origin
+        if self.coupling > 0.0:
+            pivot += self.coupling * (self._own_positions(np.asarray(query_s, dtype=np.float64)) - pivot)
+        return values[:, :3], values[:, 3:6], pivot
+
+    def _own_positions(self, query_s: FloatArray) -> FloatArray:
+        """The trajectory's positions at ``query_s``, without its jumps (those of the stations)."""
+        xyz = interpolate_positions(self.trajectory.stamps_s, self.trajectory.poses.t_xyz, query_s)
+        if self.jump_steps is None:
+            return xyz
+        return self.without_jumps(query_s).apply(xyz)
 
     def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
         """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,).

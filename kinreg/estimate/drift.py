@@ -108,7 +108,7 @@ def drift_observation(rates: DriftRates, link: int, dt_s: float,
 
 
 def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], result: BlockResult,
-                    rates: DriftRates) -> tuple[list[tuple[Plane, ...]], float]:
+                    rates: DriftRates, trajectories: Sequence[Trajectory] = ()) -> tuple[list[tuple[Plane, ...]], float]:
     """The planes of every quasi-static scan with the drift inside its window taken out, by the
     correction that the adjustment found, as far as it is known inside the window.
 
@@ -129,7 +129,9 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
       share ``1 - coupling``: where the positions integrate the attitude error (SLAM) one rigid
       correction moves the whole window; where they are measured apart from it (GNSS/INS) the
       attitude error turns the trajectory's object-frame step and shears the window instead (a
-      plane seen 2 s from the centre at 0.5 m/s and 5 mrad is 5 mm off).
+      plane seen 2 s from the centre at 0.5 m/s and 5 mrad is 5 mm off); there the rotation
+      turns each point about where the sensor was (``trajectories[run]``, the run's own
+      trajectory: its sway and turns inside the window; without it, the stations' spline).
 
     The scan's frame is otherwise the frame its planes share, so this error is common to all
     links of a scan and no link residual shows it. Static scans and stations without a time are
@@ -146,7 +148,8 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
         spacing = float(np.median(np.diff(stamps)))
         rho_pos, rho_rot = (float(np.exp(-spacing / c)) if c > 0.0 else 0.0 for c in rates.correlation_s)
         initial, adjusted = result.poses_initial[ks], result.poses[ks]
-        correction = DriftCorrection.from_stations(stamps, initial, adjusted, Trajectory(stamps, initial))
+        own = trajectories[run] if run < len(trajectories) else Trajectory(stamps, initial)
+        correction = DriftCorrection.from_stations(stamps, initial, adjusted, own, coupling=rates.coupling)
         for m, k in enumerate(ks):
             if not out[k]:
                 continue

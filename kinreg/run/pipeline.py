@@ -267,8 +267,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
                                             executor, clock, control)
         sliced, kinematic, stations, planes, adjusted = (est.sliced, est.kinematic, est.stations, est.planes,
                                                          est.adjusted)
-        corrections = [run_correction(stations, adjusted.result, k, kinematic.trajectories[k], kinematic.jumps[k])
-                       for k in range(len(runs))]
+        corrections = [run_correction(stations, adjusted.result, k, kinematic.trajectories[k], kinematic.jumps[k],
+                                      adjusted.rates.coupling) for k in range(len(runs))]
         plan = plan_large_outputs(folder, runs, sliced, corrections, adjusted.result.poses, config, references)
         views = cloud_views_for_runs(config.report, [r.cloud for r in runs], kinematic.trajectories, references,
                                      inputs.static)
@@ -358,7 +358,8 @@ def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: Proc
     controls = () if control is None else tie_points(control, stations, kinematic.trajectories, config.control)
     network = build_network(stations, planes, links, references, static, config, controls)
     adjusted = adjust_or_fail(network, planes, static, config, progress, executor, folder,
-                              inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference))
+                              inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference),
+                              kinematic.trajectories)
     folder.count("block", computed=1)
     clock.lap("block")
     return EstimatedNetwork(sliced, kinematic, stations, planes, adjusted,
@@ -372,12 +373,12 @@ def with_window(config: KinregConfig, window_s: float) -> KinregConfig:
 
 def adjust_or_fail(network: Network, planes: list[tuple[Plane, ...]], static: StaticConfig | None,
                    config: KinregConfig, progress: Progress, executor: ExecutorContext, folder: RunCache,
-                   report_inputs: dict[str, Any]) -> AdjustedNetwork:
+                   report_inputs: dict[str, Any], trajectories: Sequence[Trajectory] = ()) -> AdjustedNetwork:
     """:func:`~kinreg.run.stages.adjust_with_measured_drift`; when the adjustment fails, the
     folder's outputs (of an earlier run too) are removed, and with ``[block] on_failure =
     "report"`` a ``report.json`` and ``report.html`` marked failed take their place."""
     try:
-        return adjust_with_measured_drift(network, planes, static, config, progress, executor)
+        return adjust_with_measured_drift(network, planes, static, config, progress, executor, trajectories)
     except AdjustmentFailedError as e:
         if config.block.on_failure is OnFailure.REPORT:
             staging = folder.start_outputs()

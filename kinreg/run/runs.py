@@ -103,13 +103,14 @@ def label_run(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], 
 
 
 def run_correction(stations: Sequence[Station], result: BlockResult, run_index: int, trajectory: Trajectory,
-                   jumps: Sequence[TrajectoryJump] = ()) -> DriftCorrection:
+                   jumps: Sequence[TrajectoryJump] = (), coupling: float = 0.0) -> DriftCorrection:
     """The drift correction of one run, from its own quasi-static stations only (runs overlap in
-    space and may overlap in time; each has its own drift)."""
+    space and may overlap in time; each has its own drift); ``coupling``: the drift's measured one
+    (:class:`~kinreg.estimate.correction.DriftCorrection`)."""
     own = np.array([s.kind is ScanKind.QUASI_STATIC and s.run == run_index for s in stations])
     times = np.array([s.t_s for s in stations])
     return DriftCorrection.from_stations(times[own], result.poses_initial[own], result.poses[own], trajectory,
-                                         jumps)
+                                         jumps, coupling)
 
 
 def adjusted_sequence_scans(sequences: Sequence[QuasiStaticSequence], poses: Pose) -> Iterator[Scan]:

@@ -211,6 +211,7 @@ def adjust_with_measured_drift(
     config: KinregConfig,
     progress: Progress,
     executor: ExecutorContext | None = None,
+    trajectories: Sequence[Trajectory] = (),
 ) -> AdjustedNetwork:
     """The block adjustment of ``network`` with the drift it measures: the first adjustment measures
     the drift rates and the coupling (:func:`~kinreg.estimate.drift.estimate_drift_rates`); the pairs
@@ -238,7 +239,7 @@ def adjust_with_measured_drift(
         # Where the attitude error is coupled (GNSS/INS-like) it shears every window: its planes are
         # moved back with the adjusted attitudes, and every pair is linked again with them.
         # (Where no plane moves by more than its offset's floor sigma, nothing is gained.)
-        deskewed, shift = deskewed_planes(network.stations, planes, result, rates)
+        deskewed, shift = deskewed_planes(network.stations, planes, result, rates, trajectories)
         sheared = shift > config.planes.min_sigma_d_m
         velocity_cov = window_velocity_covariance(network.stations, result, rates) if sheared else None
         links = link_stations(network.stations, deskewed if sheared else planes, config.matching, config.drift,
