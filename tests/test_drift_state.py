@@ -283,14 +283,17 @@ def test_the_coupling_is_read_off_the_planes_own_steps(model, expected):
 
 def test_the_coupling_settles_where_it_measures_itself():
     """Planes deskewed with a coupling lean towards it: the measured coupling lies between the
-    used one and the run's own. The secant over two rounds lands on the fixed point."""
+    used one and the run's own. The secant over two rounds lands on the fixed point; a fixed point
+    that names a regime is that regime's (0.9: GNSS/INS-like, 1), a mixed one is kept."""
     from kinreg.run.stages import _settled_coupling
 
-    def measured(used):
-        return 0.5 * used + 0.45  # the run's own coupling: 0.9
+    for own, expected in ((0.9, 1.0), (0.5, 0.5)):
+        def measured(used, own=own):
+            return 0.5 * used + 0.5 * own
 
-    tried = [(0.2, measured(0.2))]
-    assert _settled_coupling(tried) == pytest.approx(measured(0.2))
-    tried.append((0.55, measured(0.55)))
-    assert _settled_coupling(tried) == pytest.approx(0.9)
+        tried = [(0.2, measured(0.2))]
+        assert _settled_coupling(tried) == pytest.approx(measured(0.2))  # mixed: as measured
+        tried.append((measured(0.2), measured(measured(0.2))))
+        assert _settled_coupling(tried) == pytest.approx(expected)
     assert _settled_coupling([(0.0, 0.0), (0.0, 0.0)]) == 0.0
+    assert _settled_coupling([(0.06, 0.1)]) == 0.0  # a world-like drift read a tenth: SLAM-like

@@ -34,6 +34,10 @@ def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
     return np.array([pos, pos, pos, rot, rot, rot])
 
 
+# A measured coupling below the first is a SLAM-like trajectory, above the second a GNSS/INS-like one.
+MIXED_COUPLING = (0.25, 0.75)
+
+
 @dataclass(frozen=True)
 class DriftRates:
     """How fast the trajectory drifts, per object axis: position [m/s] and rotation [rad/s],
@@ -70,9 +74,9 @@ class DriftRates:
     @property
     def regime(self) -> str:
         """The coupling in words, for the report."""
-        if self.coupling < 0.25:
+        if self.coupling < MIXED_COUPLING[0]:
             return "relative motion exact in the scan frame (SLAM-like)"
-        if self.coupling > 0.75:
+        if self.coupling > MIXED_COUPLING[1]:
             return "positions apart from attitude (GNSS/INS-like)"
         return "mixed"
 
@@ -323,7 +327,11 @@ def window_velocity_covariance(stations: Sequence[Station], result: BlockResult,
     of the rates' spread, ``rho`` the correlation over the station's ``tau_s``, the RMS time offset
     of its planes) plus the adjustment's own uncertainty of the velocity, the covariance of the
     adjusted relative pose of the trajectory's links on either side over their length squared
-    (the mean of the two). Static stations and stations without trajectory links: the rates'."""
+    (the mean of the two). Where the attitude error is coupled (``rates.coupling``), the deskew
+    turns each plane about the sensor where it was with the station's adjusted attitude, whose
+    own error ``dphi`` then shears the window as a drift velocity ``v x dphi`` would (``v`` the
+    walk's velocity): that spread is added, in the share ``coupling``. Static stations and
+    stations without trajectory links: the rates'."""
     n = len(stations)
     out = np.array([rates.covariance(1.0, s.T_obj_scan, floor=False) for s in stations]).reshape(n, 6, 6)
     timed = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s)]
@@ -345,6 +353,25 @@ def window_velocity_covariance(stations: Sequence[Station], result: BlockResult,
         rho = np.repeat([float(np.exp(-lag / c)) if c > 0.0 else 0.0 for c in rates.correlation_s], 3)
         left = np.sqrt(1.0 - rho**2)
         out[k] = left[:, None] * out[k] * left[None, :] + np.mean(posterior[k], axis=0)
+    if rates.coupling > 0.0:
+        for k, v in _walk_velocities(stations, result.poses_initial, timed).items():
+            S = skew(v)
+            out[k][:3, :3] += rates.coupling**2 * S @ result.cov_xi[k][3:, 3:] @ S.T
+    return out
+
+
+def _walk_velocities(stations: Sequence[Station], poses: Pose, timed: Sequence[int]) -> dict[int, FloatArray]:
+    """Per timed station with a neighbour in its run: the walk's mean velocity about it (from the
+    neighbouring stations' positions), in its scan axes."""
+    out: dict[int, FloatArray] = {}
+    for run in {stations[k].run for k in timed}:
+        ks = sorted((k for k in timed if stations[k].run == run), key=lambda k: stations[k].t_s)
+        for m, k in enumerate(ks):
+            a, b = ks[max(m - 1, 0)], ks[min(m + 1, len(ks) - 1)]
+            if a == b:
+                continue
+            v = (poses.t_xyz[b] - poses.t_xyz[a]) / (stations[b].t_s - stations[a].t_s)
+            out[k] = poses[k].rotation_matrix.T @ v
     return out
 
 
