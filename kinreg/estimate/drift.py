@@ -201,20 +201,27 @@ class _WindowMap:
         return (y - self.adjusted.t_xyz) @ self.adjusted.rotation_matrix
 
 
-_STEP_M = 0.01  # along the tangents, for the tilt
+_STEP_M = 0.01  # along the tangents, for the tilt: the least half-distance of the points
 
 
 def _deskewed(p: Plane, mapped: _WindowMap) -> Plane:
-    """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and a point a little along
-    each tangent at the time it was seen there (its time slope), which gives the tilt."""
+    """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and its tilt from points on
+    either side of it along each tangent, each at the time it was seen there (its time slope). The
+    points lie half the patch's size apart (at least ``_STEP_M``): a plane fit averages the motion
+    over the time it took to see the patch, so the tilt is the map's change over that time, not its
+    rate at one instant (which would carry the sensor's sway into it where the map turns about the
+    sensor, a GNSS/INS-like drift: 7 mrad x 0.6 m/s of sway x 2.5 s/m is 10 mrad of tilt)."""
     tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
-    u, v = _STEP_M * p.basis_uv  # the tilt at the centroid (a plane fit's, for a patch about it)
-    slope = np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
-    c, cu, cv = mapped(np.array([p.centroid_xyz, p.centroid_xyz + u, p.centroid_xyz + v]),
-                       tau + _STEP_M * np.array([0.0, *slope]))
-    normal = np.cross(cu - c, cv - c)
+    h = max(_STEP_M, 0.5 * float(np.sqrt(max(p.area_m2, 0.0))))
+    u, v = h * p.basis_uv
+    slope = h * np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
+    c0 = p.centroid_xyz
+    c, cu1, cu0, cv1, cv0 = mapped(np.array([c0, c0 + u, c0 - u, c0 + v, c0 - v]),
+                                   tau + np.array([0.0, slope[0], -slope[0], slope[1], -slope[1]]))
+    du, dv = cu1 - cu0, cv1 - cv0
+    normal = np.cross(du, dv)
     normal /= np.linalg.norm(normal) * (1.0 if normal @ p.normal > 0.0 else -1.0)
-    u_new = cu - c - ((cu - c) @ normal) * normal
+    u_new = du - (du @ normal) * normal
     u_new /= np.linalg.norm(u_new)
     return replace(p, normal=normal, d_m=float(normal @ c - (p.normal @ p.centroid_xyz - p.d_m)), centroid_xyz=c,
                    hull_xyz=mapped(p.hull_xyz, np.full(len(p.hull_xyz), tau)),
