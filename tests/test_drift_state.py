@@ -297,3 +297,43 @@ def test_the_coupling_settles_where_it_measures_itself():
         assert _settled_coupling(tried) == pytest.approx(expected)
     assert _settled_coupling([(0.0, 0.0), (0.0, 0.0)]) == 0.0
     assert _settled_coupling([(0.06, 0.1)]) == 0.0  # a world-like drift read a tenth: SLAM-like
+
+
+def test_the_deskewed_tilt_is_the_patch_average_not_the_instant_sway():
+    """A wall swept while walking along it at 0.4 m/s (time slope 2.5 s/m) with a sway of 5 cm at
+    2 Hz along the walk (0.63 m/s), under a map that turns each point by 7 mrad about the sensor
+    where it was (GNSS/INS-like). The plane a fit finds in the moved points tilts by the walk's mean
+    velocity; the deskewed plane must match it. The map's rate at one instant (a 1 cm step) would
+    carry the sway into the tilt: 7 mrad x 0.51 m/s x 2.5 s/m, 9 mrad at the patch's mean time."""
+    from kinreg.estimate.drift import _deskewed
+    from kinreg.geometry import rotvec_to_quat
+    from kinreg.types import Plane
+
+    R = Pose(rotvec_to_quat(np.array([0.0, 0.0, 7e-3])), np.zeros(3)).rotation_matrix
+    tau_c = 0.3
+
+    def sensor(tau):
+        tau = np.asarray(tau, dtype=float)
+        return np.stack([0.4 * tau + 0.05 * np.sin(2 * np.pi * 2.0 * tau), 0 * tau, 0 * tau], axis=-1)
+
+    def mapped(x, tau):
+        p = sensor(tau)
+        return (np.asarray(x) - p) @ R.T + p
+
+    # The wall y = 3 over x in [-2, 2] (seen at tau = x / 0.4: slope 2.5 s/m along x), z in [0, 2].
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-2, 2, 20000), np.full(20000, 3.0), rng.uniform(0, 2, 20000)])
+    moved = mapped(pts, pts[:, 0] / 0.4)
+    c = moved.mean(axis=0)
+    normal = np.linalg.svd(moved - c)[2][-1]
+    normal *= np.sign(normal[1])
+    # The patch about x = 0.12 m (its mean time tau_c), as kinreg's plane carries it.
+    wall = Plane(0, 0, np.array([0.0, 1.0, 0.0]), 3.0, np.array([0.4 * tau_c, 3.0, 1.0]),
+                 np.array([[1.0, 0, 0], [0, 0, 1.0]]), np.eye(3) * 1e-8, np.zeros((0, 3)), 8.0, 20000, 0.0,
+                 t_offset_s=tau_c, t_slope_s_per_m=(2.5, 0.0))
+    def tilt(plane):
+        return float(np.arccos(min(1.0, abs(_deskewed(plane, mapped).normal @ normal))))
+
+    assert tilt(wall) < 2e-4
+    from dataclasses import replace as replaced
+    assert tilt(replaced(wall, area_m2=0.0)) > 2e-3  # the instant's rate (1 cm apart): the sway in it
