@@ -201,17 +201,6 @@ def fit_plane_lsq(points_xyz: FloatArray) -> tuple[FloatArray, FloatArray, Float
     return c, w, V
 
 
-def floor_covariance(plane: Plane, min_sigma_angle_rad: float, min_sigma_d_m: float) -> FloatArray:
-    """The part (3x3) of a plane's ``cov_uvd`` that :func:`plane_covariance` adds as its floors:
-    the errors of a real plane fit that do not shrink with the point count. They are the plane's
-    own, so every link that uses the plane shares them."""
-    J = np.eye(3)
-    J[2, 0] = plane.basis_uv[0] @ plane.centroid_xyz
-    J[2, 1] = plane.basis_uv[1] @ plane.centroid_xyz
-    F = np.diag([min_sigma_angle_rad**2, min_sigma_angle_rad**2, min_sigma_d_m**2])
-    return J @ F @ J.T
-
-
 def plane_covariance(
     st_m: FloatArray,
     resid_m: FloatArray,
