@@ -159,7 +159,8 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
                 continue
             window = _WindowMap.at_centre(correction, float(stamps[m]), initial[m], adjusted[m], rates.coupling,
                                           rho_pos, rho_rot)
-            out[k] = tuple(_deskewed(p, window) for p in out[k])
+            span = (stations[k].t_start_s - stamps[m], stations[k].t_end_s - stamps[m])
+            out[k] = tuple(_deskewed(p, window, span) for p in out[k])
             largest = max([largest] + [float(np.linalg.norm(a.centroid_xyz - b.centroid_xyz))
                                        for a, b in zip(out[k], planes[k], strict=True)])
     return out, largest
@@ -204,17 +205,26 @@ class _WindowMap:
 _STEP_M = 0.01  # along the tangents, for the tilt: the least half-distance of the points
 
 
-def _deskewed(p: Plane, mapped: _WindowMap) -> Plane:
+def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.inf, np.inf)) -> Plane:
     """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and its tilt from points on
     either side of it along each tangent, each at the time it was seen there (its time slope). The
     points lie half the patch's size apart (at least ``_STEP_M``): a plane fit averages the motion
     over the time it took to see the patch, so the tilt is the map's change over that time, not its
     rate at one instant (which would carry the sensor's sway into it where the map turns about the
-    sensor, a GNSS/INS-like drift: 7 mrad x 0.6 m/s of sway x 2.5 s/m is 10 mrad of tilt)."""
+    sensor, a GNSS/INS-like drift: 7 mrad x 0.6 m/s of sway x 2.5 s/m is 10 mrad of tilt). The
+    points' times stay inside the window ``span_s`` (about the centre time; the patch was seen
+    there): along a tangent whose time slope would take them out, they come nearer. Where the map
+    turns about the stations' spline (no coupling: SLAM-like), it is smooth, its rate at the mean
+    time is its average, and the points stay ``_STEP_M`` apart (as before the coupled pivot; over
+    half a patch, a run with 0.5 m / 2 deg of world-like drift no longer converged)."""
     tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
-    h = max(_STEP_M, 0.5 * float(np.sqrt(max(p.area_m2, 0.0))))
-    u, v = h * p.basis_uv
-    slope = h * np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
+    slope = np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
+    room = max(min(tau - span_s[0], span_s[1] - tau), 0.0)  # [s] either side of the mean time
+    patch = 0.5 * float(np.sqrt(max(p.area_m2, 0.0))) if getattr(mapped, "coupling", 1.0) > 0.0 else 0.0
+    h = np.full(2, max(_STEP_M, patch))
+    h = np.maximum(_STEP_M, np.minimum(h, room / np.maximum(np.abs(slope), 1e-12)))
+    u, v = h[0] * p.basis_uv[0], h[1] * p.basis_uv[1]
+    slope = h * slope
     c0 = p.centroid_xyz
     c, cu1, cu0, cv1, cv0 = mapped(np.array([c0, c0 + u, c0 - u, c0 + v, c0 - v]),
                                    tau + np.array([0.0, slope[0], -slope[0], slope[1], -slope[1]]))
