@@ -76,15 +76,18 @@ def quat_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
-    R = np.stack(
-        [
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-        ],
-        axis=-1,
-    )  # fmt: skip
-    return R.reshape((*R.shape[:-1], 3, 3))
+    # Written into one array (not stacked from nine): half the temporaries on many quaternions.
+    R = np.empty((*w.shape, 3, 3))
+    R[..., 0, 0] = 1 - 2 * (yy + zz)
+    R[..., 0, 1] = 2 * (xy - wz)
+    R[..., 0, 2] = 2 * (xz + wy)
+    R[..., 1, 0] = 2 * (xy + wz)
+    R[..., 1, 1] = 1 - 2 * (xx + zz)
+    R[..., 1, 2] = 2 * (yz - wx)
+    R[..., 2, 0] = 2 * (xz - wy)
+    R[..., 2, 1] = 2 * (yz + wx)
+    R[..., 2, 2] = 1 - 2 * (xx + yy)
+    return R
 
 
 def matrix_to_quat(R: ArrayLike) -> FloatArray:
@@ -198,6 +201,60 @@ def _so3_left_jacobian_inv(phi: FloatArray) -> FloatArray:
     c2 = np.where(small, 1.0 / 12.0 + angle**2 / 720.0,
                   (1.0 / a**2) - (1.0 + np.cos(a)) / (2.0 * a * np.sin(a)))
     return np.eye(3) - 0.5 * K + c2 * (K @ K)
+
+
+def cross(a: ArrayLike, b: ArrayLike) -> FloatArray:
+    """Cross products ``a x b`` of ``(..., 3)`` arrays (broadcast), written out (``np.cross`` is
+    several times slower on many short vectors).
+
+    >>> cross([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    array([0., 0., 1.])
+    """
+    a, b = _as_float(a), _as_float(b)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
+def rotate(R: ArrayLike, v: ArrayLike, transpose: bool = False) -> FloatArray:
+    """``R v`` (or ``R^T v``) for rotation matrices ``(..., 3, 3)`` and vectors ``(..., 3)``, written
+    out: on many poses faster than ``einsum``, and no ``(..., 3, 3)`` temporaries.
+
+    >>> rotate(quat_to_matrix([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]), [1.0, 0, 0]).round(12)
+    array([0., 1., 0.])
+    """
+    R, v = _as_float(R), _as_float(v)
+    x, y, z = v[..., 0, None], v[..., 1, None], v[..., 2, None]
+    if transpose:  # rows of R^T are the columns of R
+        return R[..., 0, :] * x + R[..., 1, :] * y + R[..., 2, :] * z
+    return R[..., :, 0] * x + R[..., :, 1] * y + R[..., :, 2] * z
+
+
+def se3_log(quat_wxyz: ArrayLike, t_xyz: ArrayLike) -> FloatArray:
+    """SE(3) logarithm ``(..., 6)`` of poses given as arrays, as :meth:`Pose.log` but with the
+    inverse left Jacobian applied to ``t`` as vectors (``t - phi x t / 2 + c phi x (phi x t)``) rather
+    than formed as ``(..., 3, 3)`` matrices: the same to rounding, several times faster on many poses."""
+    phi = quat_to_rotvec(quat_wxyz)
+    t = _as_float(t_xyz)
+    angle = np.linalg.norm(phi, axis=-1)[..., None]
+    small = angle < 1e-5
+    a = np.where(small, 1.0, angle)
+    c2 = np.where(small, 1.0 / 12.0 + angle**2 / 720.0,
+                  (1.0 / a**2) - (1.0 + np.cos(a)) / (2.0 * a * np.sin(a)))
+    phi_t = cross(phi, t)
+    rho = t - 0.5 * phi_t + c2 * cross(phi, phi_t)
+    return np.concatenate([rho, phi], axis=-1)
+
+
+def relative_poses(quat_a: ArrayLike, t_a: ArrayLike, R_a: ArrayLike, quat_b: ArrayLike,
+                   t_b: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """``T_a^-1 T_b`` of poses given as arrays (``R_a`` the rotation matrices of ``quat_a``, when at
+    hand from elsewhere): ``(quat_wxyz, t_xyz)``, the quaternion normalised as in
+    :meth:`Pose.compose`, ``t = R_a^T (t_b - t_a)``."""
+    q = quat_normalize(quat_multiply(quat_conjugate(quat_a), quat_b))
+    return q, rotate(R_a, _as_float(t_b) - _as_float(t_a), transpose=True)
 
 
 # --------------------------------------------------------------------------- poses
