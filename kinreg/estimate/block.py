@@ -178,7 +178,10 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
     if len(p):
         R = poses.rotation_matrix  # per station, once
         for start in range(0, len(p), _CHUNK):
-            _pose_residuals(poses, R, velocity, a, p[start:start + _CHUNK], e, J if jacobians else None)
+            rows = p[start:start + _CHUNK]
+            if rows[-1] - rows[0] == len(rows) - 1:  # a run (nearly always): views, not gathered copies
+                rows = slice(int(rows[0]), int(rows[-1]) + 1)
+            _pose_residuals(poses, R, velocity, a, rows, e, J if jacobians else None)
     q = np.flatnonzero(a.point)
     if len(q):
         _point_residuals(poses, a, q, e, J if jacobians else None)
@@ -195,10 +198,11 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
     return e, J
 
 
-def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active, p: np.ndarray, e: FloatArray,
-                    J: FloatArray | None) -> None:
-    """Pose observations ``p``: their residuals into ``e`` and (with ``J``) their Jacobians
-    (:func:`_linearise`); ``R`` the stations' rotation matrices."""
+def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active, p: np.ndarray | slice,
+                    e: FloatArray, J: FloatArray | None) -> None:
+    """Pose observations ``p`` (indices or a slice): their residuals into ``e`` and (with ``J``) their
+    Jacobians (:func:`_linearise`); ``R`` the stations' rotation matrices."""
+    at = np.arange(p.start, p.stop) if isinstance(p, slice) else p
     st = a.station[p]
     i = a.nodes[p, 0]
     j = np.where(st, i, a.nodes[p, 1])
@@ -211,7 +215,7 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
     kappa = a.coupling[p]
     coupled = np.flatnonzero(kappa > 0.0)
     if len(coupled):  # the translation turned by the adjusted attitude of station i
-        turned = rotate(R_i[coupled], a.step[p[coupled]], transpose=True)
+        turned = rotate(R_i[coupled], a.step[at[coupled]], transpose=True)
         t_Z = t_Z.copy()
         t_Z[coupled] = (1.0 - kappa[coupled, None]) * t_Z[coupled] + kappa[coupled, None] * turned
     e[p] = se3_log(*relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel))
@@ -220,15 +224,15 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
     if len(has_v):  # S_j v: the velocity (object axes) in the axes of station j, times -dt
         R_j = R[j[has_v]]
         v_j = velocity[v[has_v] - len(poses)]
-        dt = a.dt[p[has_v], None]
-        e[p[has_v]] -= dt * np.concatenate([rotate(R_j, v_j[:, :3], transpose=True),
+        dt = a.dt[at[has_v], None]
+        e[at[has_v]] -= dt * np.concatenate([rotate(R_j, v_j[:, :3], transpose=True),
                                             rotate(R_j, v_j[:, 3:], transpose=True)], axis=1)
     if J is None:
         return
     # -Ad(rel^-1) = -[[R^T, -R^T [t]x], [0, R^T]] with (R, t) the relative pose; row a of R^T [t]x is
     # R[:, a] x t.
     R_relT = np.swapaxes(quat_to_matrix(q_rel), 1, 2)
-    J_i = np.zeros((len(p), 6, 6))
+    J_i = np.zeros((len(at), 6, 6))
     J_i[:, :3, :3] = -R_relT
     J_i[:, 3:, 3:] = -R_relT
     J_i[:, :3, 3:] = cross(R_relT, t_rel[:, None, :])
@@ -237,12 +241,12 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
         J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
     J[p, 0] = J_i
-    J[p[~st], 1] = np.eye(6)
+    J[at[~st], 1] = np.eye(6)
     if len(has_v):  # S_j's own dependence on T_j is of the order dt |v| and left out
         S = np.zeros((len(has_v), 6, 6))
         S[:, :3, :3] = -dt[:, :, None] * np.swapaxes(R_j, 1, 2)
         S[:, 3:, 3:] = S[:, :3, :3]
-        J[p[has_v], 2] = S
+        J[at[has_v], 2] = S
 
 
 def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: FloatArray | None) -> None:

@@ -50,8 +50,8 @@ class ObservationTests:
         """One :class:`ObservationTest` per observation, in the order of the arrays."""
         kinds = {k.value: k for k in ObservationKind}
         # a rejected observation was not tested: no covariance of what it observes
-        cov = [None if self.cov_adjusted is None or rejected else self.cov_adjusted[k]
-               for k, rejected in enumerate(self.rejected.tolist())]
+        blocks = [None] * len(self) if self.cov_adjusted is None else list(self.cov_adjusted)  # views
+        cov = [None if rejected else c for c, rejected in zip(blocks, self.rejected.tolist(), strict=True)]
         rows = zip(self.index.tolist(), [kinds[k] for k in self.kind.tolist()], self.i.tolist(), self.j.tolist(),
                    self.statistic.tolist(), self.dof.tolist(), self.redundancy.tolist(), self.normalised.tolist(),
                    self.rejected.tolist(), self.vtpv.tolist(), self.min_redundancy.tolist(), cov, strict=True)
