@@ -38,7 +38,7 @@ from kinreg.estimate.snooping import (
     variance_components,
     worst_outliers,
 )
-from kinreg.geometry import FloatArray, Pose, cross, quat_to_matrix, relative_poses, rotate, se3_log, skew
+from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
 
@@ -201,7 +201,9 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
 def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active, p: np.ndarray | slice,
                     e: FloatArray, J: FloatArray | None) -> None:
     """Pose observations ``p`` (indices or a slice): their residuals into ``e`` and (with ``J``) their
-    Jacobians (:func:`_linearise`); ``R`` the stations' rotation matrices."""
+    Jacobians (:func:`_linearise`); ``R`` the stations' rotation matrices. Every product is formed as
+    :class:`Pose`'s algebra forms it, so the figures are the same to the last bit (the pipeline's
+    loops of block, drift and relinking carry a last-bit difference to the 8th decimal)."""
     at = np.arange(p.start, p.stop) if isinstance(p, slice) else p
     st = a.station[p]
     i = a.nodes[p, 0]
@@ -215,37 +217,34 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
     kappa = a.coupling[p]
     coupled = np.flatnonzero(kappa > 0.0)
     if len(coupled):  # the translation turned by the adjusted attitude of station i
-        turned = rotate(R_i[coupled], a.step[at[coupled]], transpose=True)
+        turned = np.einsum("kji,kj->ki", R_i[coupled], a.step[at[coupled]])
         t_Z = t_Z.copy()
         t_Z[coupled] = (1.0 - kappa[coupled, None]) * t_Z[coupled] + kappa[coupled, None] * turned
-    e[p] = se3_log(*relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel))
+    e[p] = Pose(*relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel)).log()
     v = a.nodes[p, 2]
     has_v = np.flatnonzero(v >= 0)
+    S = None
     if len(has_v):  # S_j v: the velocity (object axes) in the axes of station j, times -dt
-        R_j = R[j[has_v]]
-        v_j = velocity[v[has_v] - len(poses)]
-        dt = a.dt[at[has_v], None]
-        e[at[has_v]] -= dt * np.concatenate([rotate(R_j, v_j[:, :3], transpose=True),
-                                            rotate(R_j, v_j[:, 3:], transpose=True)], axis=1)
+        S = np.zeros((len(has_v), 6, 6))
+        S[:, :3, :3] = np.swapaxes(R[j[has_v]], 1, 2)
+        S[:, 3:, 3:] = S[:, :3, :3]
+        S = -a.dt[at[has_v], None, None] * S
+        e[at[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
     if J is None:
         return
-    # -Ad(rel^-1) = -[[R^T, -R^T [t]x], [0, R^T]] with (R, t) the relative pose; row a of R^T [t]x is
-    # R[:, a] x t.
-    R_relT = np.swapaxes(quat_to_matrix(q_rel), 1, 2)
+    # -Ad(rel^-1) = -[[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
+    R_inv = quat_to_matrix(quat_conjugate(q_rel))
     J_i = np.zeros((len(at), 6, 6))
-    J_i[:, :3, :3] = -R_relT
-    J_i[:, 3:, 3:] = -R_relT
-    J_i[:, :3, 3:] = cross(R_relT, t_rel[:, None, :])
+    J_i[:, :3, :3] = -R_inv
+    J_i[:, 3:, 3:] = -R_inv
+    J_i[:, :3, 3:] = -(skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv)
     J_i[st] = np.eye(6)
     if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
         R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
         J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
     J[p, 0] = J_i
     J[at[~st], 1] = np.eye(6)
-    if len(has_v):  # S_j's own dependence on T_j is of the order dt |v| and left out
-        S = np.zeros((len(has_v), 6, 6))
-        S[:, :3, :3] = -dt[:, :, None] * np.swapaxes(R_j, 1, 2)
-        S[:, 3:, 3:] = S[:, :3, :3]
+    if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
         J[at[has_v], 2] = S
 
 

@@ -19,7 +19,6 @@ import scipy.sparse as sp
 from kinreg.estimate.sparse import BlockPattern, SparseFactor
 from kinreg.geometry import FloatArray
 
-
 # Observations per step of the assembly: temporaries of a few MB, which the allocator reuses (arrays
 # of all observations are fresh pages from the kernel each time, and the kernel's page faults cost
 # more than the products).
