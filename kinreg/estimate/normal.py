@@ -30,10 +30,10 @@ class _SlotPair:
     s: int
     t: int
     rows: np.ndarray  # the observations with both slots free (ascending)
-    # per row: its product J_s^T P J_t is summed as it is (cols[s] >= cols[t]) and/or transposed
-    # (cols[s] <= cols[t]; both where equal and s != t)
-    direct: np.ndarray
-    flipped: np.ndarray
+    # (pattern blocks, rows): where each row's product J_s^T P J_t is summed as it is (cols[s] >=
+    # cols[t]) and where transposed (cols[s] <= cols[t]; both where equal and s != t)
+    direct: sp.csr_matrix
+    flipped: sp.csr_matrix | None
     offset: int  # its rows' place in Selection.products
 
 
@@ -44,9 +44,8 @@ class Selection:
     cols: np.ndarray
     slots: tuple[int, ...]  # the slots that some observation has free
     pairs: tuple[_SlotPair, ...]
-    # (pattern blocks, products): ones where a slot pair's product of an observation is summed
-    scatter: sp.csr_matrix
-    # the products of all slot pairs (rows of scatter, 36 values each): filled by every assembly
+    # the products of all slot pairs (each pair's rows from its offset, 36 values each): filled by
+    # every assembly
     products: np.ndarray
     gradient_at: np.ndarray  # (slots, k, 6): where J_s^T P e goes in b (6 n_free: nowhere)
 
@@ -73,21 +72,22 @@ class NormalEquations:
         """The scatter for observations with these ``cols`` (a subset of those of the pattern)."""
         n_blocks = len(self.pattern.rows)
         slots = tuple(s for s in range(cols.shape[1]) if np.any(cols[:, s] >= 0))
-        pairs, targets, offset = [], [], 0
+        pairs, offset = [], 0
         for s, t in _slot_pairs(cols.shape[1]):
             rows = np.flatnonzero((cols[:, s] >= 0) & (cols[:, t] >= 0))
             if not len(rows):
                 continue
             cs, ct = cols[rows, s], cols[rows, t]
-            targets.append(self.pattern.index(cs, ct))
-            pairs.append(_SlotPair(s, t, rows, cs >= ct, (cs < ct) | ((cs == ct) & (s != t)), offset))
+            target = self.pattern.index(cs, ct)
+            flipped = (cs < ct) | ((cs == ct) & (s != t))
+            direct = _scatter(target, cs >= ct, n_blocks)
+            turned = _scatter(target, flipped, n_blocks) if flipped.any() else None
+            pairs.append(_SlotPair(s, t, rows, direct, turned, offset))
             offset += len(rows)
-        target = np.concatenate(targets) if targets else np.zeros(0, dtype=np.int64)
-        scatter = sp.csr_matrix((np.ones(offset), (target, np.arange(offset))), shape=(n_blocks, offset))
         size = 6 * self.n_free
         gradient_at = np.stack([np.where(cols[:, s, None] >= 0, 6 * cols[:, s, None] + np.arange(6), size)
                                 for s in slots]) if slots else np.zeros((0, len(cols), 6), dtype=np.int64)
-        return Selection(cols, slots, tuple(pairs), scatter, np.empty((offset, 36)), gradient_at)
+        return Selection(cols, slots, tuple(pairs), np.empty((offset, 36)), gradient_at)
 
     def assemble(self, selection: Selection, J: FloatArray, P: FloatArray,
                  e: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -95,6 +95,7 @@ class NormalEquations:
         Jacobians ``J`` (k, slots, 6, 6), weights ``P`` (k, 6, 6) and residuals ``e`` (k, 6)."""
         size = 6 * self.n_free
         k = len(e)
+        n_blocks = len(self.pattern.rows)
         products = selection.products
         gradient = np.empty((len(selection.slots), k, 6))
         for start in range(0, k, _CHUNK):
@@ -108,17 +109,29 @@ class NormalEquations:
                 if lo == hi:
                     continue
                 local = pair.rows[lo:hi] - c.start
-                M = (JT_P[pair.s] @ J[c, pair.t])[local]
-                direct, flipped = pair.direct[lo:hi, None, None], pair.flipped[lo:hi, None, None]
-                summed = np.where(direct, M, 0.0) + np.where(flipped, np.swapaxes(M, 1, 2), 0.0)
-                products[pair.offset + lo:pair.offset + hi] = summed.reshape(-1, 36)
-        blocks = (selection.scatter @ products).reshape(-1, 6, 6)
-        b = -np.bincount(selection.gradient_at.ravel(), weights=gradient.ravel(), minlength=size + 1)
+                products[pair.offset + lo:pair.offset + hi] = (JT_P[pair.s] @ J[c, pair.t])[local].reshape(-1, 36)
+        # Summed per slot pair, then the transposed ones: the order of the sums as before the chunks.
+        direct, flipped = np.zeros((n_blocks, 36)), np.zeros((n_blocks, 36))
+        for pair in selection.pairs:
+            M = products[pair.offset:pair.offset + len(pair.rows)]
+            direct += pair.direct @ M
+            if pair.flipped is not None:
+                flipped += pair.flipped @ M
+        blocks = direct.reshape(-1, 6, 6) + flipped.reshape(-1, 6, 6).transpose(0, 2, 1)
+        b = np.zeros(size + 1)
+        for m in range(len(selection.slots)):
+            b -= np.bincount(selection.gradient_at[m].ravel(), weights=gradient[m].ravel(), minlength=size + 1)
         return blocks, b[:size]
 
     def factorize(self, blocks: FloatArray, damping: float = 0.0) -> SparseFactor:
         """The factor of ``N`` (its diagonal raised by ``damping`` times itself)."""
         return self.pattern.factorize(blocks, damping)
+
+
+def _scatter(target: np.ndarray, on: np.ndarray, n_blocks: int) -> sp.csr_matrix:
+    """Ones at (target, row) where ``on``: the sum of a slot pair's products into pattern blocks."""
+    rows = np.flatnonzero(on)
+    return sp.csr_matrix((np.ones(len(rows)), (target[rows], rows)), shape=(n_blocks, len(on)))
 
 
 def _slot_pairs(slots: int) -> list[tuple[int, int]]:
