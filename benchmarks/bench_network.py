@@ -15,6 +15,13 @@ Usage: python benchmarks/bench_network.py [--stations 231 20000] [--out benchmar
 
    python benchmarks/bench_network.py --block-only --stations 100000 --cache /tmp/kinreg-bench \
        --trees /tmp/main-tree . --repeat 2 --out benchmarks/block_city_scale.json
+
+4. ``--scan-frames``: the block as the pipeline builds it with ``[block] scan_frames = true``
+   (``kinreg.estimate.frames``): per station a scan-frame node (the plane links) and a sensor-pose
+   node (the trajectory's links), tied by a ``FRAME`` observation; the first sensor pose is held.
+   Made from the same cached network (the trajectory's links moved to the sensor nodes, the ties
+   drawn with sigmas of 0.3 mm and 0.1 mrad), so 2 n nodes. The errors and sigmas reported are
+   the sensor poses'.
 """
 
 from __future__ import annotations
@@ -101,6 +108,31 @@ def synthetic_network(n: int, seed: int = 0):
     return truth, initial, obs
 
 
+def frame_network(truth, initial, obs, seed: int = 1):
+    """The network of :func:`synthetic_network` with a scan frame and a sensor pose per station, as
+    ``kinreg.estimate.frames.adjust_with_frames`` builds it: nodes 0..n-1 the scan frames (the plane
+    links stay there), n..2n-1 the sensor poses (the trajectory's links move there), a ``FRAME`` tie
+    ``s_k^-1 x_k = Z`` per station after the other observations. Returns (truth, initial, obs,
+    fixed) over the 2 n nodes; the first sensor pose is held (the frames follow by their ties)."""
+    from dataclasses import replace
+
+    from kinreg.geometry import Pose
+    from kinreg.types import ObservationKind, RelativeObservation
+
+    rng = np.random.default_rng(seed)
+    n = len(initial)
+    moved = [replace(o, i=o.i + n, j=o.j + n) if o.kind is ObservationKind.TRAJECTORY else o for o in obs]
+    cov = np.diag(np.square([3e-4] * 3 + [1e-4] * 3))
+    info = np.linalg.inv(cov)
+    noise = Pose.exp(rng.multivariate_normal(np.zeros(6), cov, size=n))
+    ties = [RelativeObservation(ObservationKind.FRAME, k, n + k, noise[k], info, 6) for k in range(n)]
+    both = Pose(np.concatenate([truth.quat_wxyz, truth.quat_wxyz]), np.concatenate([truth.t_xyz, truth.t_xyz]))
+    start = Pose(np.concatenate([initial.quat_wxyz, initial.quat_wxyz]), np.concatenate([initial.t_xyz, initial.t_xyz]))
+    fixed = np.zeros(2 * n, dtype=bool)
+    fixed[n] = True
+    return both, start, moved + ties, fixed
+
+
 def cached_network(n: int, cache: Path | None):
     """:func:`synthetic_network` ``(n)``, pickled into ``cache`` (a folder) on first use."""
     path = None if cache is None else cache / f"network_{n}.pkl"
@@ -115,7 +147,7 @@ def cached_network(n: int, cache: Path | None):
     return network
 
 
-def bench_block(n: int, cache: Path | None = None) -> dict:
+def bench_block(n: int, cache: Path | None = None, scan_frames: bool = False) -> dict:
     from kinreg.config import BlockConfig
     from kinreg.estimate.block import adjust_block
     from kinreg.estimate.sparse import HAVE_CHOLMOD
@@ -123,15 +155,19 @@ def bench_block(n: int, cache: Path | None = None) -> dict:
     truth, initial, obs = cached_network(n, cache)
     fixed = np.zeros(n, dtype=bool)
     fixed[0] = True
+    if scan_frames:
+        truth, initial, obs, fixed = frame_network(truth, initial, obs)
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     t0 = time.perf_counter()
     res = adjust_block(initial, obs, fixed, BlockConfig())
     wall = time.perf_counter() - t0
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
-    err = truth.inverse().compose(res.poses).log()[1:]
-    sig = np.sqrt(np.diagonal(res.cov_xi, axis1=1, axis2=2))[1:]
+    sensor = slice(n, 2 * n) if scan_frames else slice(0, n)  # the reported poses: the sensor's
+    err = truth[sensor].inverse().compose(res.poses[sensor]).log()[1:]
+    sig = np.sqrt(np.diagonal(res.cov_xi[sensor], axis1=1, axis2=2))[1:]
     normalised = np.array([t.normalised for t in res.tests])
-    return {"stations": n, "observations": len(obs), "seconds": wall,
+    return {"stations": n, "scan_frames": scan_frames, "nodes": len(initial), "observations": len(obs),
+            "seconds": wall,
             "cpu_seconds": (cpu1.ru_utime + cpu1.ru_stime) - (cpu0.ru_utime + cpu0.ru_stime),
             "peak_rss_gb": cpu1.ru_maxrss / 1e6, "iterations": res.iterations,
             "sigma0": res.sigma0, "redundancy": res.redundancy,
@@ -142,7 +178,8 @@ def bench_block(n: int, cache: Path | None = None) -> dict:
             "cholmod": HAVE_CHOLMOD, "load_average": os.getloadavg()}
 
 
-def bench_block_trees(stations: list[int], cache: Path | None, trees: list[Path], repeat: int) -> list[dict]:
+def bench_block_trees(stations: list[int], cache: Path | None, trees: list[Path], repeat: int,
+                      scan_frames: bool = False) -> list[dict]:
     """Each network with the kinreg of each tree, alternating, each run in a child process."""
     out = []
     for n in stations:
@@ -152,6 +189,7 @@ def bench_block_trees(stations: list[int], cache: Path | None, trees: list[Path]
                 env = dict(os.environ, PYTHONPATH=str(tree.resolve()))
                 child = [sys.executable, str(Path(__file__).resolve()), "--one-block", str(n)]
                 child += [] if cache is None else ["--cache", str(cache.resolve())]
+                child += ["--scan-frames"] if scan_frames else []
                 res = json.loads(subprocess.run(child, check=True, capture_output=True, text=True, env=env,
                                                 cwd=tree).stdout.splitlines()[-1])
                 res.update(tree=str(tree), round=round_)
@@ -168,17 +206,19 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, help="folder for the pickled synthetic networks")
     parser.add_argument("--trees", type=Path, nargs="+", default=[REPO], help="kinreg source trees to compare")
     parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--scan-frames", action="store_true",
+                        help="a scan-frame and a sensor-pose node per station, tied by a FRAME observation")
     parser.add_argument("--one-block", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one_block:
-        print(json.dumps(bench_block(args.one_block, args.cache)))
+        print(json.dumps(bench_block(args.one_block, args.cache, args.scan_frames)))
         return
     if args.block_only:
         result = {"date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join(sys.argv), "cpus": os.cpu_count(),
-                  "block": bench_block_trees(args.stations, args.cache, args.trees, args.repeat)}
+                  "block": bench_block_trees(args.stations, args.cache, args.trees, args.repeat, args.scan_frames)}
     else:
         result = {"date": time.strftime("%Y-%m-%d"), "command": " ".join(sys.argv), "links": bench_links(),
-                  "block": [bench_block(n, args.cache) for n in args.stations]}
+                  "block": [bench_block(n, args.cache, args.scan_frames) for n in args.stations]}
     print(json.dumps(result, indent=1))
     args.out.write_text(json.dumps(result, indent=1) + "\n")
 

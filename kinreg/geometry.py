@@ -76,15 +76,18 @@ def quat_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
-    R = np.stack(
-        [
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-        ],
-        axis=-1,
-    )  # fmt: skip
-    return R.reshape((*R.shape[:-1], 3, 3))
+    # Written into one array (not stacked from nine): half the temporaries on many quaternions.
+    R = np.empty((*w.shape, 3, 3))
+    R[..., 0, 0] = 1 - 2 * (yy + zz)
+    R[..., 0, 1] = 2 * (xy - wz)
+    R[..., 0, 2] = 2 * (xz + wy)
+    R[..., 1, 0] = 2 * (xy + wz)
+    R[..., 1, 1] = 1 - 2 * (xx + zz)
+    R[..., 1, 2] = 2 * (yz - wx)
+    R[..., 2, 0] = 2 * (xz - wy)
+    R[..., 2, 1] = 2 * (yz + wx)
+    R[..., 2, 2] = 1 - 2 * (xx + yy)
+    return R
 
 
 def matrix_to_quat(R: ArrayLike) -> FloatArray:
@@ -198,6 +201,23 @@ def _so3_left_jacobian_inv(phi: FloatArray) -> FloatArray:
     c2 = np.where(small, 1.0 / 12.0 + angle**2 / 720.0,
                   (1.0 / a**2) - (1.0 + np.cos(a)) / (2.0 * a * np.sin(a)))
     return np.eye(3) - 0.5 * K + c2 * (K @ K)
+
+
+def relative_poses(quat_a: ArrayLike, t_a: ArrayLike, R_a: ArrayLike, quat_b: ArrayLike,
+                   t_b: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """``T_a^-1 T_b`` of poses given as arrays, ``R_a`` the rotation matrices of ``quat_a`` (at hand
+    from elsewhere, so not formed again): ``(quat_wxyz, t_xyz)``, rounded exactly as
+    ``Pose(quat_a, t_a).inverse().compose(Pose(quat_b, t_b))`` rounds them.
+
+    >>> q, t = relative_poses([1.0, 0, 0, 0], [1.0, 2.0, 3.0], np.eye(3), [1.0, 0, 0, 0], [2.0, 2.0, 2.0])
+    >>> t
+    array([ 1.,  0., -1.])
+    """
+    q = quat_normalize(quat_multiply(quat_conjugate(quat_a), quat_b))
+    # R(q)^T is R(conj q) to the bit; einsum on a contiguous copy rounds as Pose.inverse and compose do
+    R_inv = np.ascontiguousarray(np.swapaxes(_as_float(R_a), -1, -2))
+    t = np.einsum("...ij,...j->...i", R_inv, _as_float(t_b)) - np.einsum("...ij,...j->...i", R_inv, _as_float(t_a))
+    return q, t
 
 
 # --------------------------------------------------------------------------- poses

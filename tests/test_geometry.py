@@ -13,6 +13,7 @@ from kinreg.geometry import (
     quat_slerp,
     quat_to_matrix,
     quat_to_rotvec,
+    relative_poses,
     rotation_angle_rad,
     rotvec_to_quat,
 )
@@ -134,3 +135,13 @@ def test_property_compose_inverse_log_exp(xa, xb):
     both = Pose.stack([a, b])
     mid = interpolate_poses(np.array([0.0, 1.0]), both, np.array([0.0, 1.0]))
     np.testing.assert_allclose(mid.as_matrix(), both.as_matrix(), atol=1e-9)
+
+
+def test_relative_poses_round_as_the_pose_algebra():
+    """The block's batched T_a^-1 T_b is Pose.inverse().compose() to the last bit (at UTM-sized
+    translations too): the pipeline's loops would carry a last-bit difference to its reports."""
+    a, b = random_poses(500, seed=1, scale=5e6), random_poses(500, seed=2, scale=5e6)
+    expected = a.inverse().compose(b)
+    q, t = relative_poses(a.quat_wxyz, a.t_xyz, a.rotation_matrix, b.quat_wxyz, b.t_xyz)
+    assert np.array_equal(q, expected.quat_wxyz)
+    assert np.array_equal(t, expected.t_xyz)

@@ -38,7 +38,7 @@ from kinreg.estimate.snooping import (
     variance_components,
     worst_outliers,
 )
-from kinreg.geometry import FloatArray, Pose, skew
+from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
 
@@ -72,6 +72,7 @@ class _Active:
     levers: FloatArray  # (k, 2, 3) POINT: the point in its stations' frames
     share: FloatArray  # (k,) POINT: the second station's weight (0 without one)
     Z: Pose
+    Z_rotation: FloatArray  # (k, 3, 3): Z's rotation matrices
     P: FloatArray
     dt: np.ndarray
     decay: np.ndarray  # (k, 6)
@@ -126,7 +127,7 @@ def _gather(observations: list[RelativeObservation], vnode: np.ndarray, links: _
         decay[per_axis] = np.array([np.broadcast_to(decays[k], (6,)) for k in per_axis])
     Z = Pose(np.array([o.Z.quat_wxyz for o in obs], dtype=float).reshape(-1, 4),
              np.array([o.Z.t_xyz for o in obs], dtype=float).reshape(-1, 3))
-    return _Active(np.arange(count), kinds, nodes, pose, station, point, levers, share, Z, P,
+    return _Active(np.arange(count), kinds, nodes, pose, station, point, levers, share, Z, Z.rotation_matrix, P,
                    np.fromiter((o.dt_s for o in obs), dtype=float, count=count), decay,
                    np.fromiter((o.coupling for o in obs), dtype=float, count=count),
                    _optional([o.step_obj for o in obs], (3,)))
@@ -155,12 +156,10 @@ def _weight_of(kinds: np.ndarray, weights: dict[str, float]) -> FloatArray:
     return np.array([weights[k] for k in present], dtype=float)[kind_of.reshape(-1)]
 
 
-def _to_station_axes(R: FloatArray) -> FloatArray:
-    """``S`` (k, 6, 6): a twist in object axes into the axes of the stations with rotations R."""
-    S = np.zeros((len(R), 6, 6))
-    S[:, :3, :3] = np.transpose(R, (0, 2, 1))
-    S[:, 3:, 3:] = S[:, :3, :3]
-    return S
+# Observations per step of _linearise: temporaries of a few MB, which the allocator reuses, rather
+# than arrays of all observations (at 500,000 observations a third of the CPU went to the kernel,
+# giving fresh pages to each).
+_CHUNK = 1 << 15
 
 
 def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
@@ -171,41 +170,18 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
     ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes)."""
     k = len(a.idx)
     e = np.zeros((k, 6))
-    J = np.zeros((k if jacobians else 0, 3, 6, 6))  # empty without jacobians
+    # Slot-major underneath: each slot's Jacobians ``J[:, s]`` are contiguous (the products take them
+    # without a copy), and a slot that no observation has (no drift velocities) is never written, so
+    # its pages are never touched.
+    J = np.zeros((3, k if jacobians else 0, 6, 6)).transpose(1, 0, 2, 3)
     p = np.flatnonzero(a.pose)
     if len(p):
-        st = a.station[p]
-        i = a.nodes[p, 0]
-        j = np.where(st, i, a.nodes[p, 1])
-        T_i = poses[i]
-        rel = T_i.inverse().compose(poses[j])
-        rel = Pose(np.where(st[:, None], T_i.quat_wxyz, rel.quat_wxyz), np.where(st[:, None], T_i.t_xyz, rel.t_xyz))
-        Z = a.Z[p]
-        kappa = a.coupling[p]
-        coupled = np.flatnonzero(kappa > 0.0)
-        if len(coupled):  # the translation turned by the adjusted attitude of station i
-            turned = np.einsum("kji,kj->ki", T_i.rotation_matrix[coupled], a.step[p[coupled]])
-            t = Z.t_xyz.copy()
-            t[coupled] = (1.0 - kappa[coupled, None]) * t[coupled] + kappa[coupled, None] * turned
-            Z = Pose(Z.quat_wxyz, t)
-        e[p] = Z.inverse().compose(rel).log()
-        v = a.nodes[p, 2]
-        has_v = np.flatnonzero(v >= 0)
-        S = None
-        if len(has_v):
-            S = -a.dt[p[has_v], None, None] * _to_station_axes(poses[j[has_v]].rotation_matrix)
-            e[p[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
-        if jacobians:
-            J_i = -adjoint(rel.inverse())
-            J_i[st] = np.eye(6)
-            J_j = np.broadcast_to(np.eye(6), J_i.shape).copy()
-            J_j[st] = 0.0
-            if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
-                R_Zt = np.transpose(Z.rotation_matrix[coupled], (0, 2, 1))
-                J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
-            J[p, 0], J[p, 1] = J_i, J_j
-            if S is not None:
-                J[p[has_v], 2] = S  # S_j's own dependence on T_j is of the order dt |v| and left out
+        R = poses.rotation_matrix  # per station, once
+        for start in range(0, len(p), _CHUNK):
+            rows = p[start:start + _CHUNK]
+            if rows[-1] - rows[0] == len(rows) - 1:  # a run (nearly always): views, not gathered copies
+                rows = slice(int(rows[0]), int(rows[-1]) + 1)
+            _pose_residuals(poses, R, velocity, a, rows, e, J if jacobians else None)
     q = np.flatnonzero(a.point)
     if len(q):
         _point_residuals(poses, a, q, e, J if jacobians else None)
@@ -220,6 +196,56 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J[d, 0] = -decay[:, :, None] * np.eye(6)
             J[d[pair], 1] = np.eye(6)
     return e, J
+
+
+def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active, p: np.ndarray | slice,
+                    e: FloatArray, J: FloatArray | None) -> None:
+    """Pose observations ``p`` (indices or a slice): their residuals into ``e`` and (with ``J``) their
+    Jacobians (:func:`_linearise`); ``R`` the stations' rotation matrices. Every product is formed as
+    :class:`Pose`'s algebra forms it, so the figures are the same to the last bit (the pipeline's
+    loops of block, drift and relinking carry a last-bit difference to the 8th decimal)."""
+    at = np.arange(p.start, p.stop) if isinstance(p, slice) else p
+    st = a.station[p]
+    i = a.nodes[p, 0]
+    j = np.where(st, i, a.nodes[p, 1])
+    R_i = R[i]
+    q_i, t_i = poses.quat_wxyz[i], poses.t_xyz[i]
+    q_rel, t_rel = relative_poses(q_i, t_i, R_i, poses.quat_wxyz[j], poses.t_xyz[j])
+    q_rel = np.where(st[:, None], q_i, q_rel)
+    t_rel = np.where(st[:, None], t_i, t_rel)
+    q_Z, t_Z, R_Z = a.Z.quat_wxyz[p], a.Z.t_xyz[p], a.Z_rotation[p]
+    kappa = a.coupling[p]
+    coupled = np.flatnonzero(kappa > 0.0)
+    if len(coupled):  # the translation turned by the adjusted attitude of station i
+        turned = np.einsum("kji,kj->ki", R_i[coupled], a.step[at[coupled]])
+        t_Z = t_Z.copy()
+        t_Z[coupled] = (1.0 - kappa[coupled, None]) * t_Z[coupled] + kappa[coupled, None] * turned
+    e[p] = Pose(*relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel)).log()
+    v = a.nodes[p, 2]
+    has_v = np.flatnonzero(v >= 0)
+    S = None
+    if len(has_v):  # S_j v: the velocity (object axes) in the axes of station j, times -dt
+        S = np.zeros((len(has_v), 6, 6))
+        S[:, :3, :3] = np.swapaxes(R[j[has_v]], 1, 2)
+        S[:, 3:, 3:] = S[:, :3, :3]
+        S = -a.dt[at[has_v], None, None] * S
+        e[at[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
+    if J is None:
+        return
+    # -Ad(rel^-1) = -[[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
+    R_inv = quat_to_matrix(quat_conjugate(q_rel))
+    J_i = np.zeros((len(at), 6, 6))
+    J_i[:, :3, :3] = -R_inv
+    J_i[:, 3:, 3:] = -R_inv
+    J_i[:, :3, 3:] = -(skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv)
+    J_i[st] = np.eye(6)
+    if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
+        R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
+        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
+    J[p, 0] = J_i
+    J[at[~st], 1] = np.eye(6)
+    if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
+        J[at[has_v], 2] = S
 
 
 def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: FloatArray | None) -> None:

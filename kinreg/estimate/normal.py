@@ -19,15 +19,22 @@ import scipy.sparse as sp
 from kinreg.estimate.sparse import BlockPattern, SparseFactor
 from kinreg.geometry import FloatArray
 
+# Observations per step of the assembly: temporaries of a few MB, which the allocator reuses (arrays
+# of all observations are fresh pages from the kernel each time, and the kernel's page faults cost
+# more than the products).
+_CHUNK = 1 << 14
+
 
 @dataclasses.dataclass(frozen=True)
 class _SlotPair:
     s: int
     t: int
-    # (pattern blocks, observations): where each observation's product J_s^T P J_t is summed as it
-    # is (cols[s] >= cols[t]) and where transposed (cols[s] <= cols[t]; both where equal and s != t)
+    rows: np.ndarray  # the observations with both slots free (ascending)
+    # (pattern blocks, rows): where each row's product J_s^T P J_t is summed as it is (cols[s] >=
+    # cols[t]) and where transposed (cols[s] <= cols[t]; both where equal and s != t)
     direct: sp.csr_matrix
     flipped: sp.csr_matrix | None
+    offset: int  # its rows' place in Selection.products
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +44,10 @@ class Selection:
     cols: np.ndarray
     slots: tuple[int, ...]  # the slots that some observation has free
     pairs: tuple[_SlotPair, ...]
+    # the products of all slot pairs (each pair's rows from its offset, 36 values each): filled by
+    # every assembly
+    products: np.ndarray
+    gradient_at: np.ndarray  # (slots, k, 6): where J_s^T P e goes in b (6 n_free: nowhere)
 
 
 class NormalEquations:
@@ -59,9 +70,9 @@ class NormalEquations:
 
     def select(self, cols: np.ndarray) -> Selection:
         """The scatter for observations with these ``cols`` (a subset of those of the pattern)."""
-        n_blocks, k = len(self.pattern.rows), len(cols)
+        n_blocks = len(self.pattern.rows)
         slots = tuple(s for s in range(cols.shape[1]) if np.any(cols[:, s] >= 0))
-        pairs = []
+        pairs, offset = [], 0
         for s, t in _slot_pairs(cols.shape[1]):
             rows = np.flatnonzero((cols[:, s] >= 0) & (cols[:, t] >= 0))
             if not len(rows):
@@ -69,35 +80,47 @@ class NormalEquations:
             cs, ct = cols[rows, s], cols[rows, t]
             target = self.pattern.index(cs, ct)
             flipped = (cs < ct) | ((cs == ct) & (s != t))
-            direct = _scatter(target, rows, cs >= ct, (n_blocks, k))
-            turned = _scatter(target, rows, flipped, (n_blocks, k)) if flipped.any() else None
-            pairs.append(_SlotPair(s, t, direct, turned))
-        return Selection(cols, slots, tuple(pairs))
+            direct = _scatter(target, cs >= ct, n_blocks)
+            turned = _scatter(target, flipped, n_blocks) if flipped.any() else None
+            pairs.append(_SlotPair(s, t, rows, direct, turned, offset))
+            offset += len(rows)
+        size = 6 * self.n_free
+        gradient_at = np.stack([np.where(cols[:, s, None] >= 0, 6 * cols[:, s, None] + np.arange(6), size)
+                                for s in slots]) if slots else np.zeros((0, len(cols), 6), dtype=np.int64)
+        return Selection(cols, slots, tuple(pairs), np.empty((offset, 36)), gradient_at)
 
     def assemble(self, selection: Selection, J: FloatArray, P: FloatArray,
                  e: FloatArray) -> tuple[FloatArray, FloatArray]:
         """The blocks of ``N`` (in the order of ``pattern.rows``) and ``b`` (6 n_free,) from the
         Jacobians ``J`` (k, slots, 6, 6), weights ``P`` (k, 6, 6) and residuals ``e`` (k, 6)."""
-        n_blocks = len(self.pattern.rows)
-        direct, flipped = np.zeros((n_blocks, 36)), np.zeros((n_blocks, 36))
         size = 6 * self.n_free
-        b = np.zeros(size + 6)
-        cols = selection.cols
-        # Every product over all observations (contiguous operands: numpy's small-matrix loops are
-        # several times faster than on strided views); the scatter leaves out those without the slot.
-        JT_P, J_t = {}, {}
-        for s in selection.slots:
-            J_t[s] = np.ascontiguousarray(J[:, s])
-            JT_P[s] = np.ascontiguousarray(np.transpose(J_t[s], (0, 2, 1))) @ P
-            g = np.einsum("kij,kj->ki", JT_P[s], e)
-            at = np.where(cols[:, s, None] >= 0, 6 * cols[:, s, None] + np.arange(6), size)
-            b -= np.bincount(at.ravel(), weights=g.ravel(), minlength=len(b))
+        k = len(e)
+        n_blocks = len(self.pattern.rows)
+        products = selection.products
+        gradient = np.empty((len(selection.slots), k, 6))
+        for start in range(0, k, _CHUNK):
+            c = slice(start, min(start + _CHUNK, k))
+            JT_P = {}
+            for m, s in enumerate(selection.slots):
+                JT_P[s] = np.ascontiguousarray(np.swapaxes(J[c, s], 1, 2)) @ P[c]
+                gradient[m, c] = np.einsum("kij,kj->ki", JT_P[s], e[c])
+            for pair in selection.pairs:
+                lo, hi = np.searchsorted(pair.rows, [c.start, c.stop])
+                if lo == hi:
+                    continue
+                local = pair.rows[lo:hi] - c.start
+                products[pair.offset + lo:pair.offset + hi] = (JT_P[pair.s] @ J[c, pair.t])[local].reshape(-1, 36)
+        # Summed per slot pair, then the transposed ones: the order of the sums as before the chunks.
+        direct, flipped = np.zeros((n_blocks, 36)), np.zeros((n_blocks, 36))
         for pair in selection.pairs:
-            M = (JT_P[pair.s] @ J_t[pair.t]).reshape(-1, 36)
+            M = products[pair.offset:pair.offset + len(pair.rows)]
             direct += pair.direct @ M
             if pair.flipped is not None:
                 flipped += pair.flipped @ M
         blocks = direct.reshape(-1, 6, 6) + flipped.reshape(-1, 6, 6).transpose(0, 2, 1)
+        b = np.zeros(size + 1)
+        for m in range(len(selection.slots)):
+            b -= np.bincount(selection.gradient_at[m].ravel(), weights=gradient[m].ravel(), minlength=size + 1)
         return blocks, b[:size]
 
     def factorize(self, blocks: FloatArray, damping: float = 0.0) -> SparseFactor:
@@ -105,9 +128,10 @@ class NormalEquations:
         return self.pattern.factorize(blocks, damping)
 
 
-def _scatter(target: np.ndarray, rows: np.ndarray, on: np.ndarray, shape: tuple[int, int]) -> sp.csr_matrix:
-    """Ones at (target, rows) where ``on``: the sum of observations' blocks into pattern blocks."""
-    return sp.csr_matrix((np.ones(np.count_nonzero(on)), (target[on], rows[on])), shape=shape)
+def _scatter(target: np.ndarray, on: np.ndarray, n_blocks: int) -> sp.csr_matrix:
+    """Ones at (target, row) where ``on``: the sum of a slot pair's products into pattern blocks."""
+    rows = np.flatnonzero(on)
+    return sp.csr_matrix((np.ones(len(rows)), (target[rows], rows)), shape=(n_blocks, len(on)))
 
 
 def _slot_pairs(slots: int) -> list[tuple[int, int]]:

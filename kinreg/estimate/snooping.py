@@ -50,8 +50,8 @@ class ObservationTests:
         """One :class:`ObservationTest` per observation, in the order of the arrays."""
         kinds = {k.value: k for k in ObservationKind}
         # a rejected observation was not tested: no covariance of what it observes
-        cov = [None if self.cov_adjusted is None or rejected else self.cov_adjusted[k]
-               for k, rejected in enumerate(self.rejected.tolist())]
+        blocks = [None] * len(self) if self.cov_adjusted is None else list(self.cov_adjusted)  # views
+        cov = [None if rejected else c for c, rejected in zip(blocks, self.rejected.tolist(), strict=True)]
         rows = zip(self.index.tolist(), [kinds[k] for k in self.kind.tolist()], self.i.tolist(), self.j.tolist(),
                    self.statistic.tolist(), self.dof.tolist(), self.redundancy.tolist(), self.normalised.tolist(),
                    self.rejected.tolist(), self.vtpv.tolist(), self.min_redundancy.tolist(), cov, strict=True)
@@ -80,6 +80,11 @@ _MIN_DIRECTION_REDUNDANCY = 0.02
 _MAX_VARIANCE_GROWTH = 100.0
 
 
+# Observations per step of the tests: temporaries of a few MB, reused by the allocator, rather than
+# (k, 6, 6) arrays of all observations (fresh pages from the kernel each).
+_CHUNK = 1 << 14
+
+
 def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndarray, factor: SparseFactor,
                       eig: tuple[FloatArray, FloatArray] | None = None) -> tuple[tuple[np.ndarray, ...], FloatArray]:
     """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
@@ -96,12 +101,34 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
     pairs = np.concatenate([np.column_stack([cols[ok, s], cols[ok, t]]) for (s, t), ok in zip(slot_pairs, both,
                                                                                               strict=True)])
     diag, off = selected_inverse(None, 6, pairs.astype(int).reshape(-1, 2), factor=factor)
-
+    # per slot pair and observation: its block in ``off`` (-1: not both slots free)
     offsets = np.cumsum([0] + [int(np.count_nonzero(ok)) for ok in both])
+    off_at = []
+    for m, ok in enumerate(both):
+        at = -np.ones(len(e), dtype=np.int64)
+        at[ok] = offsets[m] + np.arange(offsets[m + 1] - offsets[m])
+        off_at.append(at)
+    slots = [s for s in range(cols.shape[1]) if (cols[:, s] >= 0).any()]
+    k = len(e)
+    statistic, r_k, normalised, vtpv, least = (np.empty(k) for _ in range(5))
+    dof = np.empty(k, dtype=np.int64)
+    cov_adjusted = np.empty((k, 6, 6))
+    for start in range(0, k, _CHUNK):
+        c = slice(start, min(start + _CHUNK, k))
+        w, V = np.linalg.eigh(0.5 * (P[c] + np.transpose(P[c], (0, 2, 1)))) if eig is None else (eig[0][c], eig[1][c])
+        figures = _figures(e[c], J[c], cols[c], slots, [at[c] for at in off_at], diag, off, w, V)
+        statistic[c], dof[c], r_k[c], normalised[c], vtpv[c], least[c], cov_adjusted[c] = figures
+    return (statistic, dof, r_k, normalised, vtpv, least, cov_adjusted), diag
+
+
+def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], off_at: list[np.ndarray],
+             diag: FloatArray, off: FloatArray, w: FloatArray, V: FloatArray) -> tuple[np.ndarray, ...]:
+    """:func:`observation_tests`' figures of some observations (``off_at``: per slot pair their blocks
+    in ``off``, -1: none; ``w``, ``V``: the eigenvalues and vectors of their weights)."""
+    slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
     # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
     # small-matrix products are several times faster so than on gathered or transposed views.
-    J_s = {s: np.ascontiguousarray(J[:, s]) for s in range(cols.shape[1]) if (cols[:, s] >= 0).any()}
-    Q = None
+    J_s = {s: np.ascontiguousarray(J[:, s]) for s in slots}
     J_sT = {s: np.ascontiguousarray(np.transpose(Js, (0, 2, 1))) for s, Js in J_s.items()}
     JQJ = np.zeros((len(e), 6, 6))
     for group in ((0, 1), (2,)):  # the relative pose's slots, then the drift velocity's
@@ -111,18 +138,17 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
                 Q = np.zeros_like(JQJ)
                 Q[ok] = diag[cols[ok, s]]
                 JQJ += J_s[s] @ Q @ J_sT[s]
-        for m, ((s, t), ok) in enumerate(zip(slot_pairs, both, strict=True)):
+        for (s, t), at in zip(slot_pairs, off_at, strict=True):
+            ok = at >= 0
             if t not in group or not ok.any():
                 continue
             Q = np.zeros_like(JQJ)
-            Q[ok] = off[offsets[m]:offsets[m + 1]]
+            Q[ok] = off[at[ok]]
             cross = J_s[s] @ Q @ J_sT[t]
             JQJ += cross + np.transpose(cross, (0, 2, 1))
         if group == (0, 1):
             cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
-    del J_s, J_sT, Q, J, off
-
-    w, V = np.linalg.eigh(0.5 * (P + np.transpose(P, (0, 2, 1)))) if eig is None else eig
+    del J_s, J_sT
     determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
     w = np.where(determined, w, 1.0)
     z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
@@ -148,7 +174,7 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
     statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
     # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
     normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
-    return (statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted), diag
+    return statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted
 
 
 def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
