@@ -3,7 +3,6 @@ alarms on clean, jittered, gappy or slowly drifting trajectories, and removed ex
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 from conftest import SAMPLE_DATA, make_trajectory

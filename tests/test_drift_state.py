@@ -264,7 +264,7 @@ def _coupling_case(model: str, noise_rad: float, seed: int = 0):
     return stations, links, result
 
 
-@pytest.mark.parametrize("model, expected", [("gnss", 1.0), ("slam", 0.0)])
+@pytest.mark.parametrize(("model", "expected"), [("gnss", 1.0), ("slam", 0.0)])
 def test_the_coupling_is_read_off_the_planes_own_steps(model, expected):
     """GNSS/INS-like (the object-frame step right, the attitude error turns it in the scan's
     frame) reads 1, SLAM-like (the whole walk turned with the heading) 0, from the planes' relative

@@ -178,9 +178,10 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
     if len(p):
         R = poses.rotation_matrix  # per station, once
         for start in range(0, len(p), _CHUNK):
-            rows = p[start:start + _CHUNK]
-            if rows[-1] - rows[0] == len(rows) - 1:  # a run (nearly always): views, not gathered copies
-                rows = slice(int(rows[0]), int(rows[-1]) + 1)
+            chunk = p[start:start + _CHUNK]
+            # a run (nearly always): views, not gathered copies
+            rows: np.ndarray | slice = (slice(int(chunk[0]), int(chunk[-1]) + 1)
+                                        if chunk[-1] - chunk[0] == len(chunk) - 1 else chunk)
             _pose_residuals(poses, R, velocity, a, rows, e, J if jacobians else None)
     q = np.flatnonzero(a.point)
     if len(q):

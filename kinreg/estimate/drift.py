@@ -112,7 +112,8 @@ def drift_observation(rates: DriftRates, link: int, dt_s: float,
 
 
 def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], result: BlockResult,
-                    rates: DriftRates, trajectories: Sequence[Trajectory] = ()) -> tuple[list[tuple[Plane, ...]], float]:
+                    rates: DriftRates,
+                    trajectories: Sequence[Trajectory] = ()) -> tuple[list[tuple[Plane, ...]], float]:
     """The planes of every quasi-static scan with the drift inside its window taken out, by the
     correction that the adjustment found, as far as it is known inside the window.
 

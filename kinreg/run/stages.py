@@ -280,7 +280,7 @@ def _settled_coupling(tried: Sequence[tuple[float, float]]) -> float:
     deskewed with a coupling lean towards it, so the coupling measured after a round lies between
     the one used and the run's own, and repeating rounds creeps up on it; from the last two rounds
     the secant finds where the measured and the used coupling agree (within [0, 1])."""
-    used, found = tried[-1]
+    found = tried[-1][1]
     if len(tried) < 2:
         return _regime_coupling(found)
     (u0, f0), (u1, f1) = tried[-2], tried[-1]
