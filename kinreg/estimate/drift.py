@@ -238,11 +238,10 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
     # Candidates from a float32 product for several planes at once (a float64 pass over every
     # point per plane cost more than the rest of this function); a margin of several float32
     # roundings of the largest coordinate keeps every point the float64 test takes, and that test
-    # decides. Then coordinate by coordinate on contiguous columns (gathering rows of an (N, 3)
-    # array and reducing it along its first axis are several times slower).
+    # decides. The slope's sums on contiguous columns (an (N, 2) array reduces along its first axis
+    # several times slower).
     points32 = points_xyz.astype(np.float32)
-    columns = [np.ascontiguousarray(points_xyz[:, k]) for k in range(3)]
-    scale = float(np.abs(points32).max()) * np.sqrt(3.0)
+    scale = float(np.fmax.reduce(np.abs(points32), axis=None)) * np.sqrt(3.0)  # NaN points are never candidates
     everything = np.arange(len(points_xyz))
     for first in range(0, len(planes), _PLANES_PER_PASS):
         group = planes[first:first + _PLANES_PER_PASS]
@@ -257,15 +256,13 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
                 cand = np.flatnonzero(np.abs(r32, out=r32) <= band_m + margin)
             else:
                 cand = everything
-            x, y, z = (col[cand] for col in columns)
-            n = plane.normal
-            near = np.abs(x * n[0] + y * n[1] + z * n[2] - plane.d_m) <= band_m
+            # The float64 tests on the candidates' rows: a matrix-vector product gives each row the
+            # bits of a pass over every point, so a point on the band's edge, or a hull vertex on
+            # the extent's, falls on the same side as there.
+            sub = points_xyz[cand]
+            near = np.abs(sub @ plane.normal - plane.d_m) <= band_m
             idx = cand[near]
-            # The extent test on the (M, 3) product as before: the hull's extremes are points of
-            # the plane, so the test must round as the hull's own product does.
-            local = np.empty((len(idx), 3))
-            for axis, col in enumerate((x, y, z)):
-                np.subtract(col[near], plane.centroid_xyz[axis], out=local[:, axis])
+            local = sub[near] - plane.centroid_xyz
             hull = plane.hull_xyz - plane.centroid_xyz
             keep = np.ones(len(idx), dtype=bool)
             along = []
