@@ -278,10 +278,12 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             s, v = (a[keep] for a in along)
             s -= s.mean()
             v -= v.mean()
-            A = np.array([[s @ s, s @ v], [s @ v, v @ v]])
+            # numpy's sums, not BLAS's dot: the same bits for any number of BLAS threads.
+            sv = np.sum(s * v)
+            A = np.array([[np.sum(s * s), sv], [sv, np.sum(v * v)]])
             if len(t) >= 3 and np.linalg.cond(A) < 1e8:
                 dt = t - t.mean()
-                slopes[k] = np.linalg.solve(A, np.array([s @ dt, v @ dt]))
+                slopes[k] = np.linalg.solve(A, np.array([np.sum(s * dt), np.sum(v * dt)]))
     return offsets, slopes
 
 

@@ -194,12 +194,13 @@ def _column_mean(values: FloatArray) -> FloatArray:
 
 
 def _scatter(X: FloatArray) -> FloatArray:
-    """``X @ X.T`` of centred coordinate rows (3, N): six dot products of contiguous rows (BLAS's
-    matrix product of a 3 x N by an N x 3 matrix is about ten times slower)."""
+    """``X @ X.T`` of centred coordinate rows (3, N): six sums of products of contiguous rows
+    (BLAS's product of a 3 x N by an N x 3 matrix is about ten times slower; numpy's sums, not
+    BLAS's dot, so that the bits do not depend on the number of BLAS threads)."""
     S = np.empty((3, 3))
     for i in range(3):
         for j in range(i, 3):
-            S[i, j] = S[j, i] = X[i] @ X[j]
+            S[i, j] = S[j, i] = np.sum(X[i] * X[j])
     return S
 
 
