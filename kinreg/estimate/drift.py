@@ -255,6 +255,11 @@ def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRa
     return rates.covariance(tau, T_obj_station, floor=False)
 
 
+# Planes whose candidate points one float32 product selects (K x N float32 at a time).
+_PLANES_PER_PASS = 8
+_EPS32 = float(np.finfo(np.float32).eps)
+
+
 def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
                        band_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Per plane: the mean time of its points minus ``t_s`` [s], and the slope of their time
@@ -263,22 +268,57 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
     points)."""
     offsets = np.full(len(planes), np.nan)
     slopes = np.full((len(planes), 2), np.nan)
-    for k, plane in enumerate(planes):
-        near = np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m
-        local = points_xyz[near] - plane.centroid_xyz
-        hull = plane.hull_xyz - plane.centroid_xyz
-        inside = np.ones(len(local), dtype=bool)
-        for axis in plane.basis_uv:
-            lo, hi = (hull @ axis).min(), (hull @ axis).max()
-            inside &= (local @ axis >= lo) & (local @ axis <= hi)
-        if inside.any():
-            t = stamps_s[near][inside]
+    if not planes or not len(points_xyz):
+        return offsets, slopes
+    # Candidates from a float32 product for several planes at once (a float64 pass over every
+    # point per plane cost more than the rest of this function); a margin of several float32
+    # roundings of the largest coordinate keeps every point the float64 test takes, and that test
+    # decides. The slope's sums on contiguous columns (an (N, 2) array reduces along its first axis
+    # several times slower).
+    points32 = points_xyz.astype(np.float32)
+    scale = float(np.fmax.reduce(np.abs(points32), axis=None)) * np.sqrt(3.0)  # NaN points are never candidates
+    everything = np.arange(len(points_xyz))
+    for first in range(0, len(planes), _PLANES_PER_PASS):
+        group = planes[first:first + _PLANES_PER_PASS]
+        normals32 = np.array([p.normal for p in group], dtype=np.float32)
+        resid32 = normals32 @ points32.T  # (K, N), rows contiguous
+        for j, plane in enumerate(group):
+            k = first + j
+            margin = 16 * _EPS32 * (scale + abs(plane.d_m)) + 1e-9
+            if np.isfinite(margin):
+                r32 = resid32[j]
+                r32 -= np.float32(plane.d_m)
+                cand = np.flatnonzero(np.abs(r32, out=r32) <= band_m + margin)
+            else:
+                cand = everything
+            # The float64 tests on the candidates' rows: a matrix-vector product gives each row the
+            # bits of a pass over every point, so a point on the band's edge, or a hull vertex on
+            # the extent's, falls on the same side as there.
+            sub = points_xyz[cand]
+            near = np.abs(sub @ plane.normal - plane.d_m) <= band_m
+            idx = cand[near]
+            local = sub[near] - plane.centroid_xyz
+            hull = plane.hull_xyz - plane.centroid_xyz
+            keep = np.ones(len(idx), dtype=bool)
+            along = []
+            for axis in plane.basis_uv:
+                a = local @ axis
+                h = hull @ axis
+                keep &= (a >= h.min()) & (a <= h.max())
+                along.append(a)
+            if not keep.any():
+                continue
+            t = stamps_s[idx[keep]]
             offsets[k] = float(np.mean(t)) - t_s
-            st = local[inside] @ plane.basis_uv.T
-            st = st - st.mean(axis=0)
-            A = st.T @ st
+            s, v = (a[keep] for a in along)
+            s -= s.mean()
+            v -= v.mean()
+            # numpy's sums, not BLAS's dot: the same bits for any number of BLAS threads.
+            sv = np.sum(s * v)
+            A = np.array([[np.sum(s * s), sv], [sv, np.sum(v * v)]])
             if len(t) >= 3 and np.linalg.cond(A) < 1e8:
-                slopes[k] = np.linalg.solve(A, st.T @ (t - t.mean()))
+                dt = t - t.mean()
+                slopes[k] = np.linalg.solve(A, np.array([np.sum(s * dt), np.sum(v * dt)]))
     return offsets, slopes
 
 

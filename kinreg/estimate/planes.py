@@ -130,7 +130,10 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
         points = points[finite]
     if len(points) < max(config.min_points, 3):
         return ()
-    down = _voxel_downsample(points, config.voxel_m)
+    # The full-resolution work on coordinate rows (3, N): numpy broadcasts and gathers an (N, 3)
+    # array row by row, several times slower than over three long rows.
+    rows = np.ascontiguousarray(points.T)
+    down = _voxel_downsample(rows, config.voxel_m)
     rng = np.random.default_rng(config.seed)
     models = _ransac_planes(down, config, rng)
     if not models:
@@ -146,17 +149,18 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
     for k, idx in enumerate(_groups(labels, len(models))):
         if len(idx) < config.min_points:
             continue
-        group = points[idx]
+        group = rows.take(idx, axis=1)
         n, d = models[k]
-        inliers = np.abs(group @ n - d) < band
+        inliers = np.abs(n @ group - d) < band
         if inliers.sum() < config.min_points:
             continue
-        n, d = _refit(group[inliers])
-        group = group[np.abs(group @ n - d) < band]
-        if len(group) < config.min_points:
+        # np.compress: a boolean index along the second axis is about five times slower.
+        n, d = _refit(np.compress(inliers, group, axis=1))
+        group = np.compress(np.abs(n @ group - d) < band, group, axis=1)
+        if group.shape[1] < config.min_points:
             continue
         for patch in _split_patches(group, n, config):
-            fit = _fit_patch(group[patch.index], patch, config)
+            fit = _fit_patch(group.take(patch.index, axis=1), patch, config)
             if fit is not None:
                 fitted.append(fit)
 
@@ -187,6 +191,27 @@ def _column_max(values: NDArray[Any]) -> NDArray[Any]:
 def _column_mean(values: FloatArray) -> FloatArray:
     return np.array([values[:, k].mean() for k in range(values.shape[1])])
 
+
+
+def _scatter(X: FloatArray) -> FloatArray:
+    """``X @ X.T`` of centred coordinate rows (3, N): six sums of products of contiguous rows
+    (BLAS's product of a 3 x N by an N x 3 matrix is about ten times slower; numpy's sums, not
+    BLAS's dot, so that the bits do not depend on the number of BLAS threads)."""
+    S = np.empty((3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            S[i, j] = S[j, i] = np.sum(X[i] * X[j])
+    return S
+
+
+def _median(values: FloatArray) -> float:
+    """``np.median`` of a 1D array without NaNs, from one partition (np.median's checks and copies
+    cost as much again)."""
+    half = len(values) // 2
+    if len(values) % 2:
+        return float(np.partition(values, half)[half])
+    part = np.partition(values, (half - 1, half))
+    return float((part[half - 1] + part[half]) / 2)
 
 
 def fit_plane_lsq(points_xyz: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -258,26 +283,27 @@ class _Fit:
                      hull_xyz=self.hull, area_m2=self.area, n_points=self.n_points, rms_m=self.rms)
 
 
-def _fit_patch(points: FloatArray, patch: _Patch, config: PlanesConfig) -> _Fit | None:
+def _fit_patch(rows: FloatArray, patch: _Patch, config: PlanesConfig) -> _Fit | None:
     """Least-squares fit, trim at three robust sigmas, refit; covariance, hull, orientation.
 
-    ``points`` (N, 3) are the patch's points, ``patch`` its grid cells (for the hull).
+    ``rows`` (3, N) are the patch's points (coordinate rows), ``patch`` its grid cells (for the
+    hull).
     """
-    c = _column_mean(points)
-    X = points - c
-    _, V = np.linalg.eigh(X.T @ X)
-    r = X @ V[:, 0]
-    sigma_robust = 1.4826 * float(np.median(np.abs(r)))
+    c = rows.mean(axis=1)
+    X = rows - c[:, None]
+    _, V = np.linalg.eigh(_scatter(X))
+    r = V[:, 0] @ X
+    sigma_robust = 1.4826 * _median(np.abs(r))
     keep = np.abs(r) <= max(_TRIM_SIGMAS * sigma_robust, 1e-9)
     cells = patch.cell
     if not keep.all():
-        X, cells = X[keep], cells[keep]
-        if len(X) < max(config.min_points, 4):
+        X, cells = np.compress(keep, X, axis=1), cells[keep]
+        if X.shape[1] < max(config.min_points, 4):
             return None
-        shift = _column_mean(X)
-        X -= shift
+        shift = X.mean(axis=1)
+        X -= shift[:, None]
         c = c + shift
-    _, V = np.linalg.eigh(X.T @ X)
+    _, V = np.linalg.eigh(_scatter(X))
     n = V[:, 0]
     # Towards the scanner at the origin: n . (0 - c) > 0.
     if n @ c > 0:
@@ -287,23 +313,24 @@ def _fit_patch(points: FloatArray, patch: _Patch, config: PlanesConfig) -> _Fit 
     if u[np.argmax(np.abs(u))] < 0:
         u = -u
     basis = np.stack([u, np.cross(n, u)])
-    proj = X @ np.column_stack([basis[0], basis[1], n])  # (N, 3): s, t in the plane, residual
-    st, r = proj[:, :2], proj[:, 2]
-    hull_st, area = _hull_2d(st, patch.hull_candidates(cells))
+    proj = np.vstack([basis, n]) @ X  # (3, N): s, t in the plane, residual
+    st, r = proj[:2].T, proj[2]
+    hull_st, area = _hull_2d(proj[:2], patch.hull_candidates(cells))
     if area < config.min_area_m2:
         return None
     cov = plane_covariance(st, r, c, basis, config.min_sigma_angle_rad, config.min_sigma_d_m)
     hull_xyz = c + hull_st @ basis
-    return _Fit(n, float(n @ c), c, basis, cov, hull_xyz, area, len(X), float(np.sqrt(np.mean(r**2))))
+    return _Fit(n, float(n @ c), c, basis, cov, hull_xyz, area, X.shape[1], float(np.sqrt(np.mean(r**2))))
 
 
-def _hull_2d(st: FloatArray, candidates: NDArray[np.bool_]) -> tuple[FloatArray, float]:
-    """Convex hull (K, 2) and its area of 2D points; empty if degenerate. The vertices run
-    counter-clockwise in (s, t), i.e. seen from the side the normal points to (the scanner).
+def _hull_2d(st_rows: FloatArray, candidates: NDArray[np.bool_]) -> tuple[FloatArray, float]:
+    """Convex hull (K, 2) and its area of 2D points (coordinate rows (2, N)); empty if degenerate.
+    The vertices run counter-clockwise in (s, t), i.e. seen from the side the normal points to
+    (the scanner).
 
     Only the ``candidates`` can be hull vertices (:meth:`_Patch.hull_candidates`).
     """
-    cand = st[candidates]
+    cand = np.ascontiguousarray(np.compress(candidates, st_rows, axis=1).T)
     try:
         hull = ConvexHull(cand)
     except (QhullError, ValueError):
@@ -314,22 +341,25 @@ def _hull_2d(st: FloatArray, candidates: NDArray[np.bool_]) -> tuple[FloatArray,
 # --------------------------------------------------------------------------- downsampling, RANSAC
 
 
-def _voxel_downsample(points: FloatArray, voxel_m: float) -> FloatArray:
-    """Centroids of the occupied voxels, sorted lexicographically.
+def _voxel_downsample(rows: FloatArray, voxel_m: float) -> FloatArray:
+    """Centroids (M, 3) of the occupied voxels of the points ``rows`` (3, N), sorted
+    lexicographically.
 
     The voxels and sums of open3d's ``voxel_down_sample`` (grid from the points' lower bound
     minus half a voxel; each centroid the sum of its points in their order over their count),
     so the same values to the bit, without open3d's import (a second per worker process) or its
     copy of the points.
     """
-    lower = _column_min(points) - voxel_m * 0.5
+    lower = rows.min(axis=1) - voxel_m * 0.5
     # Non-negative: truncation is the floor.
-    q = ((points - lower) / voxel_m).astype(np.int64)
-    dims = _column_max(q) + 1
-    key = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+    q = ((rows - lower[:, None]) / voxel_m).astype(np.int64)
+    dims = q.max(axis=1) + 1
+    key = (q[0] * dims[1] + q[1]) * dims[2] + q[2]
     n_cells = int(np.prod(dims))
-    if n_cells <= _DENSE_VOXELS:  # a bincount over the box instead of a sort
-        occupied = np.flatnonzero(np.bincount(key, minlength=n_cells))
+    if n_cells <= _DENSE_VOXELS:  # a mask over the box instead of a sort
+        seen = np.zeros(n_cells, dtype=bool)  # a byte a cell, not a count of eight
+        seen[key] = True
+        occupied = np.flatnonzero(seen)
         lookup = np.empty(n_cells, dtype=np.int64)
         lookup[occupied] = np.arange(len(occupied))
         voxel = lookup[key]
@@ -341,7 +371,7 @@ def _voxel_downsample(points: FloatArray, voxel_m: float) -> FloatArray:
     count = np.bincount(voxel, minlength=n_voxels).astype(np.float64)
     down = np.empty((n_voxels, 3))
     for k in range(3):
-        down[:, k] = np.bincount(voxel, weights=points[:, k], minlength=n_voxels) / count
+        down[:, k] = np.bincount(voxel, weights=rows[k], minlength=n_voxels) / count
     return down[np.lexsort(down.T[::-1])]
 
 
@@ -526,9 +556,10 @@ def _groups(labels: IntArray, n_groups: int) -> list[IntArray]:
     return [order[bounds[k] : bounds[k + 1]] for k in range(n_groups)]
 
 
-def _refit(points: FloatArray) -> tuple[FloatArray, float]:
-    """Least-squares plane ``(normal, d)`` of ``points`` (at least three)."""
-    c, _, V = fit_plane_lsq(points)
+def _refit(rows: FloatArray) -> tuple[FloatArray, float]:
+    """Least-squares plane ``(normal, d)`` of the points ``rows`` (3, N; at least three)."""
+    c = rows.mean(axis=1)
+    _, V = np.linalg.eigh(_scatter(rows - c[:, None]))
     return V[:, 0], float(V[:, 0] @ c)
 
 
@@ -551,22 +582,23 @@ class _Patch:
         return ~interior.reshape(-1)[cell]
 
 
-def _split_patches(points: FloatArray, normal: FloatArray, config: PlanesConfig) -> list[_Patch]:
-    """The connected patches of one plane's points (occupancy grid in the plane, 8-connected).
+def _split_patches(rows: FloatArray, normal: FloatArray, config: PlanesConfig) -> list[_Patch]:
+    """The connected patches of one plane's points ``rows`` (3, N) (occupancy grid in the plane,
+    8-connected).
 
     Cells with fewer than ``patch_min_cell_points`` points neither join nor connect patches.
     Patches with fewer than ``min_points`` points are left out; ordered by size, largest first.
     """
-    st = points @ tangent_basis(normal).T  # any in-plane basis will do for the grid
-    st -= _column_min(st)
+    st = tangent_basis(normal) @ rows  # (2, N); any in-plane basis will do for the grid
+    st -= st.min(axis=1)[:, None]
     cell_m = config.patch_cell_m
-    extent = _column_max(st)
+    extent = st.max(axis=1)
     # A stray far point must not blow up the dense grid: coarsen it instead (very large planes).
     while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:
         cell_m *= 2.0
     ij = np.floor(st / cell_m).astype(np.int64)
-    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    shape = (int(ij[0].max()) + 1, int(ij[1].max()) + 1)
+    flat = ij[0] * shape[1] + ij[1]
     occupancy = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
     grid, n_labels = ndimage.label(occupancy >= config.patch_min_cell_points, structure=np.ones((3, 3)))
     point_label = grid.reshape(-1)[flat]

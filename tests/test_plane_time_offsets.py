@@ -1,0 +1,61 @@
+"""The planes' time offsets and slopes from a float32 preselection are those of a float64 pass."""
+
+from __future__ import annotations
+
+import numpy as np
+from planefixtures import plane_in_scan
+
+from kinreg.estimate.drift import plane_time_offsets
+from kinreg.geometry import Pose
+
+
+def _one_pass(points_xyz, stamps_s, t_s, planes, band_m):
+    """The definition: per plane, a float64 test of every point against the band and the extent."""
+    offsets = np.full(len(planes), np.nan)
+    slopes = np.full((len(planes), 2), np.nan)
+    for k, plane in enumerate(planes):
+        near = np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m
+        local = points_xyz[near] - plane.centroid_xyz
+        hull = plane.hull_xyz - plane.centroid_xyz
+        inside = np.ones(len(local), dtype=bool)
+        for axis in plane.basis_uv:
+            inside &= (local @ axis >= (hull @ axis).min()) & (local @ axis <= (hull @ axis).max())
+        if inside.any():
+            t = stamps_s[near][inside]
+            offsets[k] = float(np.mean(t)) - t_s
+            st = local[inside] @ plane.basis_uv.T
+            st = st - st.mean(axis=0)
+            A = st.T @ st
+            if len(t) >= 3 and np.linalg.cond(A) < 1e8:
+                slopes[k] = np.linalg.solve(A, st.T @ (t - t.mean()))
+    return offsets, slopes
+
+
+def test_offsets_and_slopes_equal_a_float64_pass_over_every_point():
+    """Ten planes of a box-shaped room 30 m across (more than one float32 product's worth), points
+    scattered across and beyond their bands (also exactly on a band's edge), a non-finite point
+    and a plane without points: the same offsets to the bit, the same slopes to rounding."""
+    rng = np.random.default_rng(7)
+    normals = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1), (1, 1, 0), (0, 1, 1),
+               (1, 0, 1), (1, 1, 1)]
+    planes, chunks = [], []
+    for k, n in enumerate(normals):
+        n = np.asarray(n, dtype=float) / np.linalg.norm(n)
+        d = -(4.0 + 1.5 * k)
+        p = plane_in_scan(n, d, d * n, (3.0, 2.0), Pose.identity(), 0, k, 1e-4, 3e-4, None)
+        planes.append(p)
+        st = rng.uniform(-3.5, 3.5, (20_000, 2))  # some beyond the extent
+        offset = rng.normal(0.0, 0.02, 20_000)  # some beyond the band of 0.03 m
+        offset[:50] = 0.03  # on the edge
+        chunks.append(p.centroid_xyz + st @ p.basis_uv + offset[:, None] * p.normal)
+    empty = plane_in_scan((0.0, 0.0, 1.0), -200.0, (0.0, 0.0, -200.0), (1.0, 1.0), Pose.identity(), 0, 10,
+                          1e-4, 3e-4, None)
+    planes.append(empty)
+    points = np.concatenate([*chunks, rng.uniform(-15, 15, (50_000, 3)), [[np.nan, 0.0, 0.0]]])
+    stamps = 500.0 + rng.uniform(-5.0, 5.0, len(points))
+    offsets, slopes = plane_time_offsets(points, stamps, 500.0, planes, 0.03)
+    want_offsets, want_slopes = _one_pass(points, stamps, 500.0, planes, 0.03)
+    assert np.array_equal(offsets, want_offsets, equal_nan=True)
+    np.testing.assert_allclose(slopes, want_slopes, rtol=0, atol=1e-12)
+    assert np.isnan(offsets[-1]) and np.isfinite(offsets[:-1]).all()
+    assert plane_time_offsets(points[:0], stamps[:0], 500.0, planes, 0.03)[0].shape == (len(planes),)
