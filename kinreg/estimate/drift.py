@@ -260,6 +260,9 @@ _PLANES_PER_PASS = 8
 _EPS32 = float(np.finfo(np.float32).eps)
 
 
+_EXTENT_MARGIN_M = 1e-9  # [m] (plane_time_offsets)
+
+
 def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
                        band_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Per plane: the mean time of its points minus ``t_s`` [s], and the slope of their time
@@ -304,7 +307,9 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             for axis in plane.basis_uv:
                 a = local @ axis
                 h = hull @ axis
-                keep &= (a >= h.min()) & (a <= h.max())
+                # with a margin: the hull's extreme vertices are points of the plane, on the edge to
+                # the last bit, and a hull that moved by 1e-14 would put them in or out
+                keep &= (a >= h.min() - _EXTENT_MARGIN_M) & (a <= h.max() + _EXTENT_MARGIN_M)
                 along.append(a)
             if not keep.any():
                 continue
