@@ -230,7 +230,8 @@ def adjust_with_measured_drift(
     correlation = rates.correlation_s
     linked_with = prior_rates
     tried: list[tuple[float, float]] = []  # (coupling deskewed and adjusted with, coupling it measured)
-    for round_ in range(config.block.max_relink_rounds + _COUPLING_ROUNDS):
+    rounds = config.block.max_relink_rounds + _COUPLING_ROUNDS if config.block.max_relink_rounds else 0
+    for round_ in range(rounds):
         # Matched again from the adjusted poses: pairs that the trajectory's drift kept apart or
         # out of the gates (loop closures) are linked now, and the planes' window deformation
         # follows the measured rates. Until the set of linked pairs no longer changes. Links whose
