@@ -38,6 +38,15 @@ def drift_sigmas(dt_s: float, config: DriftConfig) -> FloatArray:
 MIXED_COUPLING = (0.25, 0.75)
 
 
+def regime_coupling(kappa: float) -> float:
+    """A measured coupling that names a regime (:data:`MIXED_COUPLING`) is that regime's: 0 or 1.
+    The measurement errs by about a tenth either way (a rigid drift of the world read 0.1, a
+    GNSS/INS-like run 0.92), and a tenth of the coupling left in is a tenth of the shear left in
+    the windows; a mixed trajectory keeps its measured share."""
+    low, high = MIXED_COUPLING
+    return 0.0 if kappa < low else 1.0 if kappa > high else kappa
+
+
 @dataclass(frozen=True)
 class DriftRates:
     """How fast the trajectory drifts, per object axis: position [m/s] and rotation [rad/s],
@@ -111,6 +120,15 @@ def drift_observation(rates: DriftRates, link: int, dt_s: float,
                                np.diag(1.0 / (variance * (1.0 - decay**2))), 6, decay=decay)
 
 
+def _timed_runs(stations: Sequence[Station]) -> dict[int, list[int]]:
+    """Per run: its quasi-static stations with a time, in time order."""
+    runs: dict[int, list[int]] = {}
+    for k, s in enumerate(stations):
+        if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s):
+            runs.setdefault(s.run, []).append(k)
+    return {run: sorted(ks, key=lambda k: stations[k].t_s) for run, ks in sorted(runs.items())}
+
+
 def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], result: BlockResult,
                     rates: DriftRates,
                     trajectories: Sequence[Trajectory] = ()) -> tuple[list[tuple[Plane, ...]], float]:
@@ -144,9 +162,7 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
     """
     out = list(planes)
     largest = 0.0
-    timed = [k for k, s in enumerate(stations) if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s)]
-    for run in sorted({stations[k].run for k in timed}):
-        ks = sorted((k for k in timed if stations[k].run == run), key=lambda k: stations[k].t_s)
+    for run, ks in _timed_runs(stations).items():
         if len(ks) < 2:
             continue
         stamps = np.array([stations[k].t_s for k in ks])
@@ -161,7 +177,7 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
             window = _WindowMap.at_centre(correction, float(stamps[m]), initial[m], adjusted[m], rates.coupling,
                                           rho_pos, rho_rot)
             span = (stations[k].t_start_s - stamps[m], stations[k].t_end_s - stamps[m])
-            out[k] = tuple(_deskewed(p, window, span) for p in out[k])
+            out[k] = tuple(_deskewed(p, window, span, over_patch=rates.coupling > 0.0) for p in out[k])
             largest = max([largest] + [float(np.linalg.norm(a.centroid_xyz - b.centroid_xyz))
                                        for a, b in zip(out[k], planes[k], strict=True)])
     return out, largest
@@ -206,7 +222,8 @@ class _WindowMap:
 _STEP_M = 0.01  # along the tangents, for the tilt: the least half-distance of the points
 
 
-def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.inf, np.inf)) -> Plane:
+def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.inf, np.inf),
+              over_patch: bool = True) -> Plane:
     """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and its tilt from points on
     either side of it along each tangent, each at the time it was seen there (its time slope). The
     points lie half the patch's size apart (at least ``_STEP_M``): a plane fit averages the motion
@@ -215,15 +232,14 @@ def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.i
     sensor, a GNSS/INS-like drift: 7 mrad x 0.6 m/s of sway x 2.5 s/m is 10 mrad of tilt). The
     points' times stay inside the window ``span_s`` (about the centre time; the patch was seen
     there): along a tangent whose time slope would take them out, they come nearer. Where the map
-    turns about the stations' spline (no coupling: SLAM-like), it is smooth, its rate at the mean
-    time is its average, and the points stay ``_STEP_M`` apart (as before the coupled pivot; over
+    turns about the stations' spline (no coupling: SLAM-like; ``over_patch`` false), it is smooth,
+    its rate at the mean time is its average, and the points stay ``_STEP_M`` apart (as before the coupled pivot; over
     half a patch, a run with 0.5 m / 2 deg of world-like drift no longer converged)."""
     tau = p.t_offset_s if np.isfinite(p.t_offset_s) else 0.0
     slope = np.nan_to_num(np.asarray(p.t_slope_s_per_m, dtype=float))
     room = max(min(tau - span_s[0], span_s[1] - tau), 0.0)  # [s] either side of the mean time
-    patch = 0.5 * float(np.sqrt(max(p.area_m2, 0.0))) if getattr(mapped, "coupling", 1.0) > 0.0 else 0.0
-    h = np.full(2, max(_STEP_M, patch))
-    h = np.maximum(_STEP_M, np.minimum(h, room / np.maximum(np.abs(slope), 1e-12)))
+    patch = 0.5 * float(np.sqrt(max(p.area_m2, 0.0))) if over_patch else 0.0
+    h = np.maximum(_STEP_M, np.minimum(patch, room / np.maximum(np.abs(slope), 1e-12)))
     u, v = h[0] * p.basis_uv[0], h[1] * p.basis_uv[1]
     slope = h * slope
     c0 = p.centroid_xyz
@@ -258,9 +274,9 @@ def window_bias_covariance(station: Station, T_obj_station: Pose, rates: DriftRa
 # Planes whose candidate points one float32 product selects (K x N float32 at a time).
 _PLANES_PER_PASS = 8
 _EPS32 = float(np.finfo(np.float32).eps)
-
-
-_EXTENT_MARGIN_M = 1e-9  # [m] (plane_time_offsets)
+# A plane's extent is widened by this: its hull's extreme vertices are points of the plane, on the
+# edge to the last bit, and a hull that a refit moved by 1e-14 m would put them in or out.
+_EXTENT_MARGIN_M = 1e-9
 
 
 def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
@@ -307,8 +323,6 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             for axis in plane.basis_uv:
                 a = local @ axis
                 h = hull @ axis
-                # with a margin: the hull's extreme vertices are points of the plane, on the edge to
-                # the last bit, and a hull that moved by 1e-14 would put them in or out
                 keep &= (a >= h.min() - _EXTENT_MARGIN_M) & (a <= h.max() + _EXTENT_MARGIN_M)
                 along.append(a)
             if not keep.any():
@@ -417,18 +431,17 @@ def window_velocity_covariance(stations: Sequence[Station], result: BlockResult,
         left = np.sqrt(1.0 - rho**2)
         out[k] = left[:, None] * out[k] * left[None, :] + np.mean(posterior[k], axis=0)
     if rates.coupling > 0.0:
-        for k, v in _walk_velocities(stations, result.poses_initial, timed).items():
+        for k, v in _walk_velocities(stations, result.poses_initial).items():
             S = skew(v)
             out[k][:3, :3] += rates.coupling**2 * S @ result.cov_xi[k][3:, 3:] @ S.T
     return out
 
 
-def _walk_velocities(stations: Sequence[Station], poses: Pose, timed: Sequence[int]) -> dict[int, FloatArray]:
+def _walk_velocities(stations: Sequence[Station], poses: Pose) -> dict[int, FloatArray]:
     """Per timed station with a neighbour in its run: the walk's mean velocity about it (from the
     neighbouring stations' positions), in its scan axes."""
     out: dict[int, FloatArray] = {}
-    for run in {stations[k].run for k in timed}:
-        ks = sorted((k for k in timed if stations[k].run == run), key=lambda k: stations[k].t_s)
+    for ks in _timed_runs(stations).values():
         for m, k in enumerate(ks):
             a, b = ks[max(m - 1, 0)], ks[min(m + 1, len(ks) - 1)]
             if a == b:
@@ -495,9 +508,9 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     Y, U, W = np.array(y), np.array(u), np.array(w)
     c = np.array(weight)[:, None]
     spread = float(np.sum(c * (W - U) ** 2))
-    kappa = float(np.clip(np.sum(c * (W - U) * (Y - U)) / spread, 0.0, 1.0)) if spread > 1e-12 else 0.0
-    from_links = coupling_from_links(stations, links, result, prior)
-    kappa = kappa if from_links is None else from_links
+    kappa = coupling_from_links(stations, links, result, prior)
+    if kappa is None:
+        kappa = float(np.clip(np.sum(c * (W - U) * (Y - U)) / spread, 0.0, 1.0)) if spread > 1e-12 else 0.0
     pos_v = (Y - U - kappa * (W - U)) / np.array(dts)[:, None]
     pos_rate = _rms_rate(pos_v, np.array(pos_noise))
     rot_rate = _rms_rate(np.array(rot_v), np.array(rot_noise))
@@ -531,11 +544,8 @@ def coupling_from_links(stations: Sequence[Station], links: Sequence[Link], resu
     steps, the planes' relative poses do not depend on the coupling the adjustment used, where the
     planes leave a direction to the trajectory (the adjustment then repeats its own model); the
     adjusted attitude ``R'_a`` is fixed by the planes' rotations, whatever the coupling."""
-    by_run: dict[int, list[float]] = {}
-    for s in stations:
-        if s.kind is ScanKind.QUASI_STATIC and np.isfinite(s.t_s):
-            by_run.setdefault(s.run, []).append(s.t_s)
-    spacing = {run: float(np.median(np.diff(np.sort(t)))) for run, t in by_run.items() if len(t) > 1}
+    spacing = {run: float(np.median(np.diff([stations[k].t_s for k in ks])))
+               for run, ks in _timed_runs(stations).items() if len(ks) > 1}
     num, den, n = 0.0, 0.0, 0
     cov_xi = getattr(result, "cov_xi", None)
     for link in links:

@@ -26,11 +26,11 @@ from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import adjust_network, screen_control_points, take_out_jumps
 from kinreg.estimate.drift import (
-    MIXED_COUPLING,
     DriftRates,
     deskewed_planes,
     estimate_drift_rates,
     plane_time_offsets,
+    regime_coupling,
     rms_time_offset,
     window_velocity_covariance,
     with_window_bias,
@@ -283,21 +283,13 @@ def _settled_coupling(tried: Sequence[tuple[float, float]]) -> float:
     the secant finds where the measured and the used coupling agree (within [0, 1])."""
     found = tried[-1][1]
     if len(tried) < 2:
-        return _regime_coupling(found)
+        return regime_coupling(found)
     (u0, f0), (u1, f1) = tried[-2], tried[-1]
     g0, g1 = f0 - u0, f1 - u1
     if abs(u1 - u0) < 1e-6 or abs(g1 - g0) < 1e-6:
-        return _regime_coupling(found)
-    return _regime_coupling(float(np.clip(u1 - g1 * (u1 - u0) / (g1 - g0), 0.0, 1.0)))
+        return regime_coupling(found)
+    return regime_coupling(float(np.clip(u1 - g1 * (u1 - u0) / (g1 - g0), 0.0, 1.0)))
 
-
-def _regime_coupling(kappa: float) -> float:
-    """A measured coupling that names a regime (:data:`~kinreg.estimate.drift.MIXED_COUPLING`) is
-    that regime's: 0 or 1. The measurement errs by about a tenth either way (a rigid drift of the
-    world read 0.1, a GNSS/INS-like run 0.92), and a tenth of the coupling left in is a tenth of the
-    shear left in the windows; a mixed trajectory keeps its measured share."""
-    low, high = MIXED_COUPLING
-    return 0.0 if kappa < low else 1.0 if kappa > high else kappa
 
 
 def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
