@@ -300,3 +300,55 @@ def test_the_damped_step_recovers_from_a_start_where_gauss_newton_overshoots():
     result = adjust_block(start, obs, fixed, BlockConfig(max_iterations=100, data_snooping=False))
     assert not result.failed
     assert np.max(np.linalg.norm(result.poses.t_xyz - truth.t_xyz, axis=1)) < 0.05
+
+
+def test_the_jacobians_hold_across_a_large_residual_in_a_direction_the_planes_leave_open():
+    """A plane link whose planes leave a translation open keeps the trajectory's value there, a
+    metre and more from the adjusted one after a large drift: its Jacobians must still be the
+    residual's (a small rotation moves that metre across the directions the planes fix); with
+    the first-order ones the Gauss-Newton step of such a network doubled its cost."""
+    from kinreg.estimate import block
+
+    rng = np.random.default_rng(5)
+    poses = Pose.exp(rng.normal(0.0, [1.0, 1.0, 0.2, 0.1, 0.1, 0.8], (2, 6)))
+    off = Pose.exp(np.array([0.3, 1.9, -0.3, 0.002, -0.004, 0.03]))  # 1.9 m along the open direction
+    Z = poses[0].inverse().compose(poses[1]).compose(off.inverse())
+    observation = RelativeObservation(ObservationKind.PLANES, 0, 1, Z, np.eye(6), 6)
+    weights = {k.value: 1.0 for k in ObservationKind}
+    active = block._arrays([observation], np.ones(1, dtype=bool), -np.ones(2, dtype=int), weights)
+    e, J = block._linearise(poses, np.zeros((0, 6)), active)
+    assert np.allclose(e[0], off.log(), atol=1e-12)
+    h = 1e-7
+    for slot in range(2):
+        numeric = np.zeros((6, 6))
+        for axis in range(6):
+            step = np.zeros((2, 6))
+            step[slot, axis] = h
+            moved, _ = block._linearise(poses.compose(Pose.exp(step)), np.zeros((0, 6)), active, jacobians=False)
+            numeric[:, axis] = (moved[0] - e[0]) / h
+        assert np.abs(numeric - J[0, slot]).max() < 2e-3 * np.abs(numeric).max()
+
+
+def test_the_jacobians_of_a_trajectory_link_with_its_drift_velocity_match_finite_differences():
+    """``e = log(Z^-1 T_i^-1 T_j) - dt S_j v``: ``S_j`` turns the velocity into station j's axes, so
+    the residual moves with T_j's attitude through it too (a metre per second of drift velocity over
+    a few seconds is metres of lever)."""
+    from kinreg.estimate import block
+
+    rng = np.random.default_rng(3)
+    poses = Pose.exp(rng.normal(0.0, [1.0, 1.0, 0.2, 0.1, 0.1, 0.8], (2, 6)))
+    Z = poses[0].inverse().compose(poses[1]).compose(Pose.exp(rng.normal(0.0, 0.01, 6)))
+    observation = RelativeObservation(ObservationKind.TRAJECTORY, 0, 1, Z, np.eye(6), 6, dt_s=6.0)
+    velocity = np.array([[0.2, -0.1, 0.05, 0.001, -0.002, 0.01]])
+    weights = {k.value: 1.0 for k in ObservationKind}
+    active = block._arrays([observation], np.ones(1, dtype=bool), np.array([2, -1]), weights)
+    e, J = block._linearise(poses, velocity, active)
+    h = 1e-7
+    for slot in range(2):
+        numeric = np.zeros((6, 6))
+        for axis in range(6):
+            step = np.zeros((2, 6))
+            step[slot, axis] = h
+            moved, _ = block._linearise(poses.compose(Pose.exp(step)), velocity, active, jacobians=False)
+            numeric[:, axis] = (moved[0] - e[0]) / h
+        assert np.abs(numeric - J[0, slot]).max() < 1e-4
