@@ -55,20 +55,6 @@ def adjoint(T: Pose) -> FloatArray:
     return A
 
 
-def inverse_right_jacobian(xi: FloatArray) -> FloatArray:
-    """``(..., 6, 6)``: how ``log(exp(xi) exp(d))`` moves with a small twist ``d`` (rho, phi),
-    ``I + ad(xi) / 2 + ad(xi)^2 / 12`` (the series to second order). A plane link between scans
-    whose planes leave a direction open keeps the trajectory's value there, which after a drift
-    of half a metre can be a metre from the adjusted one: the first-order term turns every small
-    rotation into a translation across that residual, and without it the Gauss-Newton step of
-    such a network doubled its cost."""
-    ad = np.zeros((*np.shape(xi)[:-1], 6, 6))
-    ad[..., :3, :3] = skew(xi[..., 3:])
-    ad[..., 3:, 3:] = ad[..., :3, :3]
-    ad[..., :3, 3:] = skew(xi[..., :3])
-    return np.eye(6) + 0.5 * ad + (ad @ ad) / 12.0
-
-
 @dataclasses.dataclass(frozen=True)
 class _Active:
     """The active observations as arrays. Unknowns are numbered as nodes: the stations 0..n-1
@@ -236,10 +222,6 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         t_Z = t_Z.copy()
         t_Z[coupled] = (1.0 - kappa[coupled, None]) * t_Z[coupled] + kappa[coupled, None] * turned
     e[p] = Pose(*relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel)).log()
-    # d log(exp(e) exp(d)) = J_r(e)^-1 d: for T_j directly, for T_i through its adjoint (below);
-    # d log(exp(-d) exp(e)) = -J_l(e)^-1 d = -J_r(-e)^-1 d for a change of Z (a coupled link)
-    J_r_inv = inverse_right_jacobian(e[p]) if J is not None else None
-    J_l_inv = inverse_right_jacobian(-e[at[coupled]]) if J is not None and len(coupled) else None
     v = a.nodes[p, 2]
     has_v = np.flatnonzero(v >= 0)
     S = None
@@ -248,8 +230,7 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         S[:, :3, :3] = np.swapaxes(R[j[has_v]], 1, 2)
         S[:, 3:, 3:] = S[:, :3, :3]
         S = -a.dt[at[has_v], None, None] * S
-        Sv = (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
-        e[at[has_v]] += Sv
+        e[at[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
     if J is None:
         return
     # -Ad(rel^-1) = -[[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
@@ -259,20 +240,13 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
     J_i[:, 3:, 3:] = -R_inv
     J_i[:, :3, 3:] = -(skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv)
     J_i[st] = np.eye(6)
-    assert J_r_inv is not None
-    J_i = J_r_inv @ J_i
-    if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation, a change of Z: J_l(e)^-1
+    if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
         R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
-        J_Z = np.zeros((len(coupled), 6, 3))
-        J_Z[:, :3] = kappa[coupled, None, None] * R_Zt @ skew(turned)
-        assert J_l_inv is not None
-        J_i[coupled, :, 3:] -= J_l_inv @ J_Z
+        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
     J[p, 0] = J_i
-    J[at[~st], 1] = J_r_inv[~st]
-    if S is not None:  # and S_j's dependence on T_j's attitude: d(R_j^T w)/d(phi_j) = [R_j^T w]x
+    J[at[~st], 1] = np.eye(6)
+    if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
         J[at[has_v], 2] = S
-        J[at[has_v], 1, :3, 3:] += skew(Sv[:, :3])
-        J[at[has_v], 1, 3:, 3:] += skew(Sv[:, 3:])
 
 
 def _point_residuals(poses: Pose, a: _Active, q: np.ndarray, e: FloatArray, J: FloatArray | None) -> None:
