@@ -22,6 +22,7 @@ instead of once per link.
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
@@ -40,7 +41,8 @@ _RANK_TOLERANCE = 1e-9
 
 
 class _Design:
-    """The observations and the linearised model of one pair for a set of matches."""
+    """The observations and the linearised model of one pair for a set of matches, as arrays over
+    the matches (a pair has tens of them, a run tens of thousands of pairs a round)."""
 
     def __init__(self, planes_i: dict[int, Plane], planes_j: dict[int, Plane], matches: list[PlaneMatch]):
         self.matches = matches
@@ -57,30 +59,60 @@ class _Design:
             self.Q_ll[k:k + 3, k:k + 3] = planes_j[pid].cov_uvd
         self.a = [planes_i[m.plane_i] for m in matches]
         self.b = [planes_j[m.plane_j] for m in matches]
+        self.n_a = np.array([p.normal for p in self.a]).reshape(-1, 3)
+        self.d_a = np.array([p.d_m for p in self.a])
+        self.u_a = np.array([p.basis_uv[0] for p in self.a]).reshape(-1, 3)
+        self.v_a = np.array([p.basis_uv[1] for p in self.a]).reshape(-1, 3)
+        self.n_b = np.array([p.normal for p in self.b]).reshape(-1, 3)
+        self.d_b = np.array([p.d_m for p in self.b])
+        self.u_b = np.array([p.basis_uv[0] for p in self.b]).reshape(-1, 3)
+        self.v_b = np.array([p.basis_uv[1] for p in self.b]).reshape(-1, 3)
+        self.skew_b = skew(self.n_b)
+        # B's entries: rows 3k..3k+2 of match k against the columns of its plane a (-I) and of
+        # its plane b (set by linearise).
+        m_count = len(matches)
+        rows = 3 * np.arange(m_count)[:, None, None] + np.arange(3)[None, :, None]
+        cols_i = np.array([self.block_i[m.plane_i] for m in matches], dtype=int).reshape(-1, 1, 1)
+        cols_j = np.array([self.block_j[m.plane_j] for m in matches], dtype=int).reshape(-1, 1, 1)
+        self.rows = np.broadcast_to(rows, (m_count, 3, 3))
+        self.cols_i = cols_i + np.arange(3)[None, None, :]
+        self.cols_j = cols_j + np.arange(3)[None, None, :]
 
     def linearise(self, T: Pose) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T``."""
         R, t = T.rotation_matrix, T.t_xyz
         m_count = len(self.matches)
+        m = self.n_b @ R.T  # R n_b of every match
+        diff = m - self.n_a
         w = np.empty(3 * m_count)
+        w[0::3] = np.einsum("ki,ki->k", self.u_a, diff)
+        w[1::3] = np.einsum("ki,ki->k", self.v_a, diff)
+        w[2::3] = self.d_b + m @ t - self.d_a
+        dm_dphi = -(R @ self.skew_b)  # (m, 3, 3)
         A = np.zeros((3 * m_count, 6))
+        A[0::3, 3:] = np.einsum("ki,kij->kj", self.u_a, dm_dphi)
+        A[1::3, 3:] = np.einsum("ki,kij->kj", self.v_a, dm_dphi)
+        A[2::3, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
+        A[2::3, 3:] = np.einsum("i,kij->kj", t, dm_dphi)
         B = np.zeros((3 * m_count, self.Q_ll.shape[0]))
-        for k, (pa, pb, match) in enumerate(zip(self.a, self.b, self.matches, strict=True)):
-            ua, va = pa.basis_uv
-            ub, vb = pb.basis_uv
-            m = R @ pb.normal
-            rows = slice(3 * k, 3 * k + 3)
-            w[rows] = [ua @ (m - pa.normal), va @ (m - pa.normal), pb.d_m + m @ t - pa.d_m]
-            dm_dphi = -R @ skew(pb.normal)
-            A[3 * k, 3:] = ua @ dm_dphi
-            A[3 * k + 1, 3:] = va @ dm_dphi
-            A[3 * k + 2, :3] = pb.normal  # d(m . (t + R rho))/drho = m^T R = n_b^T
-            A[3 * k + 2, 3:] = t @ dm_dphi
-            ia, jb = self.block_i[match.plane_i], self.block_j[match.plane_j]
-            B[rows, ia:ia + 3] = -np.eye(3)
-            Rub, Rvb = R @ ub, R @ vb
-            B[rows, jb:jb + 3] = [[ua @ Rub, ua @ Rvb, 0.0], [va @ Rub, va @ Rvb, 0.0], [Rub @ t, Rvb @ t, 1.0]]
+        B[self.rows, self.cols_i] = -np.eye(3)
+        Rub, Rvb = self.u_b @ R.T, self.v_b @ R.T
+        block = np.zeros((m_count, 3, 3))
+        block[:, 0, 0] = np.einsum("ki,ki->k", self.u_a, Rub)
+        block[:, 0, 1] = np.einsum("ki,ki->k", self.u_a, Rvb)
+        block[:, 1, 0] = np.einsum("ki,ki->k", self.v_a, Rub)
+        block[:, 1, 1] = np.einsum("ki,ki->k", self.v_a, Rvb)
+        block[:, 2, 0] = Rub @ t
+        block[:, 2, 1] = Rvb @ t
+        block[:, 2, 2] = 1.0
+        B[self.rows, self.cols_j] = block
         return w, A, B
+
+
+@functools.lru_cache(maxsize=256)
+def _chi2_quantile(p: float, dof: int) -> float:
+    """``stats.chi2.ppf(p, dof)``, once per (p, dof): scipy's call costs more than a small pair's solve."""
+    return float(stats.chi2.ppf(p, dof))
 
 
 def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: int) -> dict:
@@ -111,14 +143,12 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
 
 def _match_statistics(sol: dict, n_matches: int) -> tuple[FloatArray, FloatArray]:
     """Per match: the 3-dof test statistic e^T Q_ee^+ e, and the largest normalised residual."""
-    e, Q_ee = sol["w"], sol["Q_ee"]
-    test = np.empty(n_matches)
-    normalised = np.empty(n_matches)
-    for k in range(n_matches):
-        rows = slice(3 * k, 3 * k + 3)
-        block = Q_ee[rows, rows]
-        test[k] = float(e[rows] @ np.linalg.pinv(block, rcond=1e-10) @ e[rows])
-        normalised[k] = float(np.max(np.abs(e[rows]) / np.sqrt(np.maximum(np.diag(block), 1e-30))))
+    e = sol["w"].reshape(n_matches, 3)
+    k = np.arange(n_matches)
+    blocks = sol["Q_ee"].reshape(n_matches, 3, n_matches, 3)[k, :, k, :]  # (m, 3, 3) diagonal blocks
+    test = np.einsum("ki,kij,kj->k", e, np.linalg.pinv(blocks, rcond=1e-10), e)
+    diag = np.diagonal(blocks, axis1=1, axis2=2)
+    normalised = np.max(np.abs(e) / np.sqrt(np.maximum(diag, 1e-30)), axis=1)
     return test, normalised
 
 
@@ -171,7 +201,7 @@ def adjust_pair(
     while active:
         sol = _solve(_Design(by_id_i, by_id_j, active), T_prior, P_prior, config.max_iterations)
         test, normalised = _match_statistics(sol, len(active))
-        critical = stats.chi2.ppf(1.0 - config.alpha, 3)
+        critical = _chi2_quantile(1.0 - config.alpha, 3)
         worst = int(np.argmax(test))
         if test[worst] <= critical or len(rejected) >= max_rejected:
             break
@@ -187,7 +217,7 @@ def adjust_pair(
 
     redundancy = 3 * len(active)
     sigma0 = float(np.sqrt(sol["omega"] / redundancy))
-    passed = bool(sol["omega"] <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
+    passed = bool(sol["omega"] <= _chi2_quantile(1.0 - config.alpha, redundancy))
     T_planes, N_p, rank, axis_sigma = _plane_only(sol)
     R_i = np.array([by_id_i[m.plane_i].normal for m in active])
     # A failed global test alone is reported, not fatal (it happens at rate alpha by chance); a link
