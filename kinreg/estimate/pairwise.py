@@ -115,7 +115,18 @@ def _chi2_quantile(p: float, dof: int) -> float:
     return float(stats.chi2.ppf(p, dof))
 
 
+def _pinv_symmetric(Q: FloatArray) -> FloatArray:
+    """``np.linalg.pinv(Q, hermitian=True)`` of a symmetric ``Q`` from its eigenvectors, without
+    the SVD wrapper's cost (the same cutoff, 1e-15 of the largest eigenvalue's size)."""
+    eigval, eigvec = np.linalg.eigh(Q)
+    size = np.abs(eigval)
+    large = size > 1e-15 * size.max(initial=0.0)
+    inverse = np.divide(1.0, eigval, out=np.zeros_like(eigval), where=large)
+    return (eigvec * inverse) @ eigvec.T
+
+
 def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: int) -> dict:
+    T_prior_inv = T_prior.inverse()
     T = T_prior
     xi = np.zeros(6)
     for _ in range(max_iterations):
@@ -123,17 +134,18 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
         Q_ww = B @ design.Q_ll @ B.T
         # pinv: conditions that repeat one another (one plane matched to two coplanar patches
         # twice over) leave Q_ww singular; they then count once.
-        W = np.linalg.pinv(Q_ww, hermitian=True)
-        N_p = A.T @ W @ A
+        W = _pinv_symmetric(Q_ww)
+        AtW = A.T @ W
+        N_p = AtW @ A
         N = N_p + P_prior
-        step = np.linalg.solve(N, -(A.T @ W @ w + P_prior @ xi))
+        step = np.linalg.solve(N, -(AtW @ w + P_prior @ xi))
         T = T.compose(Pose.exp(step))
-        xi = T_prior.inverse().compose(T).log()
+        xi = T_prior_inv.compose(T).log()
         if np.max(np.abs(step)) < 1e-11:
             break
     w, A, B = design.linearise(T)
     Q_ww = B @ design.Q_ll @ B.T
-    W = np.linalg.pinv(Q_ww, hermitian=True)
+    W = _pinv_symmetric(Q_ww)
     N_p = A.T @ W @ A
     Q_xx = np.linalg.inv(N_p + P_prior)
     Q_ee = Q_ww - A @ Q_xx @ A.T
