@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 
 import numpy as np
 from scipy import stats
@@ -78,9 +79,8 @@ class _Design:
         self.cols_i = cols_i + np.arange(3)[None, None, :]
         self.cols_j = cols_j + np.arange(3)[None, None, :]
 
-    def linearise(self, T: Pose) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T``."""
-        R, t = T.rotation_matrix, T.t_xyz
+    def linearise(self, R: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T = (R, t)``."""
         m_count = len(self.matches)
         m = self.n_b @ R.T  # R n_b of every match
         diff = m - self.n_a
@@ -125,12 +125,46 @@ def _pinv_symmetric(Q: FloatArray) -> FloatArray:
     return (eigvec * inverse) @ eigvec.T
 
 
+def _so3(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The rotation matrix of the rotation vector ``phi`` (3,), its left Jacobian, and its skew
+    matrix: :meth:`Pose.exp`'s formulas for one small twist, without the quaternions between them
+    (a pair's solve takes a handful of steps, and the poses' general code cost more than the rest)."""
+    x, y, z = phi.tolist()
+    theta = math.sqrt(x * x + y * y + z * z)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    if theta < 1e-5:
+        a, b, c = 1.0 - theta**2 / 6.0, 0.5 - theta**2 / 24.0, 1.0 / 6.0 - theta**2 / 120.0
+    else:
+        a, b, c = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta**2, (theta - math.sin(theta)) / theta**3
+    K2 = K @ K
+    return _EYE3 + a * K + b * K2, _EYE3 + b * K + c * K2, K
+
+
+def _log(R: FloatArray, t: FloatArray) -> FloatArray:
+    """The twist ``(rho, phi)`` (6,) of the pose ``(R, t)``, as :meth:`Pose.log` (angles below pi)."""
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # sin(angle) axis
+    sine = math.sqrt(float(v @ v))
+    theta = math.atan2(sine, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
+    phi = v * (theta / sine) if sine > 0.0 else v
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta < 1e-5:
+        c = 1.0 / 12.0 + theta**2 / 720.0
+    else:
+        c = 1.0 / theta**2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
+    return np.concatenate([(_EYE3 - 0.5 * K + c * (K @ K)) @ t, phi])
+
+
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+
+
 def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: int) -> dict:
-    T_prior_inv = T_prior.inverse()
-    T = T_prior
+    # The iterate as a rotation matrix and a translation: T <- T exp(step), xi = log(T_prior^-1 T).
+    R_prior, t_prior = T_prior.rotation_matrix, T_prior.t_xyz
+    R, t = R_prior, t_prior
     xi = np.zeros(6)
     for _ in range(max_iterations):
-        w, A, B = design.linearise(T)
+        w, A, B = design.linearise(R, t)
         Q_ww = B @ design.Q_ll @ B.T
         # pinv: conditions that repeat one another (one plane matched to two coplanar patches
         # twice over) leave Q_ww singular; they then count once.
@@ -139,18 +173,19 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
         N_p = AtW @ A
         N = N_p + P_prior
         step = np.linalg.solve(N, -(AtW @ w + P_prior @ xi))
-        T = T.compose(Pose.exp(step))
-        xi = T_prior_inv.compose(T).log()
+        R_step, J_step, _ = _so3(step[3:])
+        R, t = R @ R_step, R @ (J_step @ step[:3]) + t
+        xi = _log(R_prior.T @ R, R_prior.T @ (t - t_prior))
         if np.max(np.abs(step)) < 1e-11:
             break
-    w, A, B = design.linearise(T)
+    w, A, B = design.linearise(R, t)
     Q_ww = B @ design.Q_ll @ B.T
     W = _pinv_symmetric(Q_ww)
     N_p = A.T @ W @ A
     Q_xx = np.linalg.inv(N_p + P_prior)
     Q_ee = Q_ww - A @ Q_xx @ A.T
-    return {"T": T, "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx, "Q_ee": Q_ee,
-            "omega": float(w @ W @ w + xi @ P_prior @ xi)}
+    return {"T": Pose.from_rotation_translation(R, t), "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx,
+            "Q_ee": Q_ee, "omega": float(w @ W @ w + xi @ P_prior @ xi)}
 
 
 def _match_statistics(sol: dict, n_matches: int) -> tuple[FloatArray, FloatArray]:
