@@ -125,9 +125,9 @@ def _pinv_symmetric(Q: FloatArray) -> FloatArray:
     return (eigvec * inverse) @ eigvec.T
 
 
-def _so3(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The rotation matrix of the rotation vector ``phi`` (3,), its left Jacobian, and its skew
-    matrix: :meth:`Pose.exp`'s formulas for one small twist, without the quaternions between them
+def _so3(phi: np.ndarray) -> tuple[FloatArray, FloatArray]:
+    """The rotation matrix of the rotation vector ``phi`` (3,) and its left Jacobian:
+    :meth:`Pose.exp`'s formulas for one small twist, without the quaternions between them
     (a pair's solve takes a handful of steps, and the poses' general code cost more than the rest)."""
     x, y, z = phi.tolist()
     theta = math.sqrt(x * x + y * y + z * z)
@@ -137,7 +137,7 @@ def _so3(phi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     else:
         a, b, c = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta**2, (theta - math.sin(theta)) / theta**3
     K2 = K @ K
-    return _EYE3 + a * K + b * K2, _EYE3 + b * K + c * K2, K
+    return _EYE3 + a * K + b * K2, _EYE3 + b * K + c * K2
 
 
 def _log(R: FloatArray, t: FloatArray) -> FloatArray:
@@ -173,7 +173,7 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
         N_p = AtW @ A
         N = N_p + P_prior
         step = np.linalg.solve(N, -(AtW @ w + P_prior @ xi))
-        R_step, J_step, _ = _so3(step[3:])
+        R_step, J_step = _so3(step[3:])
         R, t = R @ R_step, R @ (J_step @ step[:3]) + t
         xi = _log(R_prior.T @ R, R_prior.T @ (t - t_prior))
         if np.max(np.abs(step)) < 1e-11:
