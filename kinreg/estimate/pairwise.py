@@ -62,51 +62,41 @@ class _Design:
         self.b = [planes_j[m.plane_j] for m in matches]
         self.n_a = np.array([p.normal for p in self.a]).reshape(-1, 3)
         self.d_a = np.array([p.d_m for p in self.a])
-        self.u_a = np.array([p.basis_uv[0] for p in self.a]).reshape(-1, 3)
-        self.v_a = np.array([p.basis_uv[1] for p in self.a]).reshape(-1, 3)
+        self.uv_a = np.array([p.basis_uv for p in self.a]).reshape(-1, 2, 3)
         self.n_b = np.array([p.normal for p in self.b]).reshape(-1, 3)
         self.d_b = np.array([p.d_m for p in self.b])
-        self.u_b = np.array([p.basis_uv[0] for p in self.b]).reshape(-1, 3)
-        self.v_b = np.array([p.basis_uv[1] for p in self.b]).reshape(-1, 3)
+        self.uv_b = np.array([p.basis_uv for p in self.b]).reshape(-1, 2, 3)
         self.skew_b = skew(self.n_b)
-        # B's entries: rows 3k..3k+2 of match k against the columns of its plane a (-I) and of
-        # its plane b (set by linearise).
+        # B: rows 3k..3k+2 of match k are -I against the columns of its plane a and a block set by
+        # linearise against those of its plane b.
         m_count = len(matches)
-        rows = 3 * np.arange(m_count)[:, None, None] + np.arange(3)[None, :, None]
+        rows = np.broadcast_to(3 * np.arange(m_count)[:, None, None] + np.arange(3)[None, :, None], (m_count, 3, 3))
         cols_i = np.array([self.block_i[m.plane_i] for m in matches], dtype=int).reshape(-1, 1, 1)
         cols_j = np.array([self.block_j[m.plane_j] for m in matches], dtype=int).reshape(-1, 1, 1)
-        self.rows = np.broadcast_to(rows, (m_count, 3, 3))
-        self.cols_i = cols_i + np.arange(3)[None, None, :]
-        self.cols_j = cols_j + np.arange(3)[None, None, :]
+        self.B_i = np.zeros((3 * m_count, n_obs))
+        self.B_i[rows, cols_i + np.arange(3)[None, None, :]] = -np.eye(3)
+        self.B_j_index = (rows, cols_j + np.arange(3)[None, None, :])
 
     def linearise(self, R: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T = (R, t)``."""
         m_count = len(self.matches)
         m = self.n_b @ R.T  # R n_b of every match
-        diff = m - self.n_a
-        w = np.empty(3 * m_count)
-        w[0::3] = np.einsum("ki,ki->k", self.u_a, diff)
-        w[1::3] = np.einsum("ki,ki->k", self.v_a, diff)
-        w[2::3] = self.d_b + m @ t - self.d_a
+        w = np.empty((m_count, 3))
+        w[:, :2] = np.einsum("kci,ki->kc", self.uv_a, m - self.n_a)
+        w[:, 2] = self.d_b + m @ t - self.d_a
         dm_dphi = -(R @ self.skew_b)  # (m, 3, 3)
-        A = np.zeros((3 * m_count, 6))
-        A[0::3, 3:] = np.einsum("ki,kij->kj", self.u_a, dm_dphi)
-        A[1::3, 3:] = np.einsum("ki,kij->kj", self.v_a, dm_dphi)
-        A[2::3, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
-        A[2::3, 3:] = np.einsum("i,kij->kj", t, dm_dphi)
-        B = np.zeros((3 * m_count, self.Q_ll.shape[0]))
-        B[self.rows, self.cols_i] = -np.eye(3)
-        Rub, Rvb = self.u_b @ R.T, self.v_b @ R.T
+        A = np.zeros((m_count, 3, 6))
+        A[:, :2, 3:] = np.einsum("kci,kij->kcj", self.uv_a, dm_dphi)
+        A[:, 2, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
+        A[:, 2, 3:] = t @ dm_dphi
+        B = self.B_i.copy()
+        Ruv_b = self.uv_b @ R.T  # (m, 2, 3): R u_b, R v_b
         block = np.zeros((m_count, 3, 3))
-        block[:, 0, 0] = np.einsum("ki,ki->k", self.u_a, Rub)
-        block[:, 0, 1] = np.einsum("ki,ki->k", self.u_a, Rvb)
-        block[:, 1, 0] = np.einsum("ki,ki->k", self.v_a, Rub)
-        block[:, 1, 1] = np.einsum("ki,ki->k", self.v_a, Rvb)
-        block[:, 2, 0] = Rub @ t
-        block[:, 2, 1] = Rvb @ t
+        block[:, :2, :2] = np.einsum("kci,kdi->kcd", self.uv_a, Ruv_b)
+        block[:, 2, :2] = Ruv_b @ t
         block[:, 2, 2] = 1.0
-        B[self.rows, self.cols_j] = block
-        return w, A, B
+        B[self.B_j_index] = block
+        return w.reshape(-1), A.reshape(-1, 6), B
 
 
 @functools.lru_cache(maxsize=256)
