@@ -32,7 +32,7 @@ from scipy import stats
 from kinreg.config import DriftConfig, PairwiseConfig
 from kinreg.estimate.drift import drift_sigmas
 from kinreg.estimate.matching import count_directions
-from kinreg.geometry import FloatArray, Pose, skew
+from kinreg.geometry import FloatArray, Pose, matrix_to_quat, skew
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch
 
 log = logging.getLogger(__name__)
@@ -174,7 +174,10 @@ def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: 
     N_p = A.T @ W @ A
     Q_xx = np.linalg.inv(N_p + P_prior)
     Q_ee = Q_ww - A @ Q_xx @ A.T
-    return {"T": Pose.from_rotation_translation(R, t), "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx,
+    # The quaternion on the prior's side, as composing small steps onto the prior's kept it.
+    q = matrix_to_quat(R)
+    T = Pose(-q if float(q @ T_prior.quat_wxyz) < 0.0 else q, t)
+    return {"T": T, "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx,
             "Q_ee": Q_ee, "omega": float(w @ W @ w + xi @ P_prior @ xi)}
 
 
