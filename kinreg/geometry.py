@@ -53,8 +53,9 @@ def quat_multiply(q1_wxyz: ArrayLike, q2_wxyz: ArrayLike) -> FloatArray:
     """Hamilton product ``q1 * q2`` (rotation q2 first, then q1)."""
     q1 = _as_float(q1_wxyz)
     q2 = _as_float(q2_wxyz)
-    w1, x1, y1, z1 = np.moveaxis(q1, -1, 0)
-    w2, x2, y2, z2 = np.moveaxis(q2, -1, 0)
+    # Indexed, not np.moveaxis: the same views, without its cost on the one quaternion of a pair's solve.
+    w1, x1, y1, z1 = q1[..., 0], q1[..., 1], q1[..., 2], q1[..., 3]
+    w2, x2, y2, z2 = q2[..., 0], q2[..., 1], q2[..., 2], q2[..., 3]
     return np.stack(
         [
             w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
@@ -72,7 +73,8 @@ def quat_to_matrix(quat_wxyz: ArrayLike) -> FloatArray:
     >>> np.round(quat_to_matrix([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)]) @ [1.0, 0, 0], 12)
     array([0., 1., 0.])
     """
-    w, x, y, z = np.moveaxis(_as_float(quat_wxyz), -1, 0)
+    q = _as_float(quat_wxyz)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
@@ -178,9 +180,12 @@ def make_quat_continuous(quat_wxyz: ArrayLike) -> FloatArray:
 def skew(v: ArrayLike) -> FloatArray:
     """Skew-symmetric matrices ``(..., 3, 3)`` with ``skew(a) @ b == cross(a, b)``."""
     v = _as_float(v)
-    z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([z, -w, y, w, z, -x, -y, x, z], axis=-1).reshape((*v.shape[:-1], 3, 3))
+    K = np.zeros((*v.shape[:-1], 3, 3))
+    K[..., 0, 1], K[..., 0, 2] = -w, y
+    K[..., 1, 0], K[..., 1, 2] = w, -x
+    K[..., 2, 0], K[..., 2, 1] = -y, x
+    return K
 
 
 def _so3_left_jacobian(phi: FloatArray) -> FloatArray:

@@ -193,3 +193,19 @@ def test_window_deformation_adds_the_drift_over_each_planes_time_offset():
         elif before.t_offset_s != 0.0:  # a wall does, by the turn over its time offset
             total = np.trace(after.cov_uvd[:2, :2] - before.cov_uvd[:2, :2])
             assert total == pytest.approx((1e-4 * before.t_offset_s) ** 2, rel=1e-6)
+
+
+def test_the_solve_steps_agree_with_the_poses_exp_and_log():
+    # The pairwise solve steps with its own closed forms of one twist's exp and log (for speed).
+    from kinreg.estimate.pairwise import _log, _so3
+
+    rng = np.random.default_rng(7)
+    for scale in (1e-9, 1e-6, 1e-3, 0.3):
+        for _ in range(20):
+            xi = rng.normal(0.0, scale, 6)
+            R, J = _so3(xi[3:])
+            T = Pose.exp(xi)
+            assert np.allclose(R, T.rotation_matrix, rtol=0, atol=1e-15)
+            assert np.allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-15)
+            assert np.allclose(J @ xi[:3], T.t_xyz, rtol=0, atol=1e-15 * max(1.0, scale))
+            assert np.allclose(_log(T.rotation_matrix, T.t_xyz), xi, rtol=1e-9, atol=1e-15)

@@ -27,6 +27,7 @@ smooth correction then works on the stations' poses without the jumps.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -88,24 +89,35 @@ class DriftCorrection:
 
     def at(self, query_s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Rotation vectors, shifts and pivots (each (n, 3)) at the times ``query_s`` (n,)."""
-        pivots = self.pivot_xyz
-        if pivots is None:
-            pivots = interpolate_positions(self.trajectory.stamps_s, self.trajectory.poses.t_xyz, self.stamps_s)
         t = np.clip(query_s, self.stamps_s[0], self.stamps_s[-1])
         if len(self.stamps_s) == 1:
+            pivots = self._pivots
+
             def held(v: FloatArray) -> FloatArray:
                 return np.broadcast_to(v[0], (len(t), 3))
 
             return held(self.rotvec), held(self.delta_m), held(pivots)
-        # Pivots relative to the first one: the spline then works on metres, not on UTM values.
-        origin = pivots[0]
-        spline = CubicSpline(self.stamps_s, np.hstack([self.rotvec, self.delta_m, pivots - origin]),
-                             bc_type="natural")
+        spline, origin = self._spline
         values = spline(t)
         pivot = values[:, 6:] + origin
         if self.coupling > 0.0:
             pivot += self.coupling * (self._own_positions(np.asarray(query_s, dtype=np.float64)) - pivot)
         return values[:, :3], values[:, 3:6], pivot
+
+    @functools.cached_property
+    def _pivots(self) -> FloatArray:
+        if self.pivot_xyz is not None:
+            return self.pivot_xyz
+        return interpolate_positions(self.trajectory.stamps_s, self.trajectory.poses.t_xyz, self.stamps_s)
+
+    @functools.cached_property
+    def _spline(self) -> tuple[CubicSpline, FloatArray]:
+        """The spline of :meth:`at` and its origin, made once (the deskew asks for a few times at a
+        time, once per plane)."""
+        # Pivots relative to the first one: the spline then works on metres, not on UTM values.
+        origin = self._pivots[0]
+        return CubicSpline(self.stamps_s, np.hstack([self.rotvec, self.delta_m, self._pivots - origin]),
+                           bc_type="natural"), origin
 
     def _own_positions(self, query_s: FloatArray) -> FloatArray:
         """The trajectory's positions at ``query_s``, without its jumps (those of the stations)."""

@@ -49,8 +49,9 @@ def _plane_frame(plane: Plane) -> tuple[FloatArray, FloatArray]:
 
 
 def _box_in_plane(points: FloatArray, origin: FloatArray, u: FloatArray, v: FloatArray) -> FloatArray:
-    uv = np.column_stack([(points - origin) @ u, (points - origin) @ v])
-    return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
+    local = points - origin
+    along_u, along_v = local @ u, local @ v
+    return np.array([along_u.min(), along_v.min(), along_u.max(), along_v.max()])
 
 
 def _overlap_share(box_a: FloatArray, box_b: FloatArray) -> float:
@@ -103,10 +104,17 @@ def match_planes(
     group_b = _coplanar_groups(n_b, d_b, config)
     group_a = _coplanar_groups(n_a, d_a, config)
     candidates: dict[tuple[int, int], tuple[float, float, float]] = {}
+    R_i_j = T_i_j.rotation_matrix
+    boxes_a: dict[int, FloatArray] = {}  # each plane's own box and hull in frame i, once per call
+    hulls_b: dict[int, FloatArray] = {}
     for a, b in zip(*np.nonzero(gate), strict=True):
         u, v = _plane_frame(planes_i[a])
-        box_a = _box_in_plane(planes_i[a].hull_xyz, c_a[a], u, v)
-        box_b = _box_in_plane(T_i_j.apply(planes_j[b].hull_xyz), c_a[a], u, v)
+        if a not in boxes_a:
+            boxes_a[a] = _box_in_plane(planes_i[a].hull_xyz, c_a[a], u, v)
+        if b not in hulls_b:
+            hulls_b[b] = planes_j[b].hull_xyz @ R_i_j.T + T_i_j.t_xyz  # T_i_j.apply
+        box_a = boxes_a[a]
+        box_b = _box_in_plane(hulls_b[b], c_a[a], u, v)
         share = _overlap_share(box_a, box_b)
         if share >= config.min_overlap:
             candidates[(int(a), int(b))] = (float(angle[a, b]), float(offset[a, b]), share)

@@ -22,7 +22,9 @@ instead of once per link.
 
 from __future__ import annotations
 
+import functools
 import logging
+import math
 
 import numpy as np
 from scipy import stats
@@ -30,7 +32,7 @@ from scipy import stats
 from kinreg.config import DriftConfig, PairwiseConfig
 from kinreg.estimate.drift import drift_sigmas
 from kinreg.estimate.matching import count_directions
-from kinreg.geometry import FloatArray, Pose, skew
+from kinreg.geometry import FloatArray, Pose, matrix_to_quat, skew
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch
 
 log = logging.getLogger(__name__)
@@ -40,7 +42,8 @@ _RANK_TOLERANCE = 1e-9
 
 
 class _Design:
-    """The observations and the linearised model of one pair for a set of matches."""
+    """The observations and the linearised model of one pair for a set of matches, as arrays over
+    the matches (a pair has tens of them, a run tens of thousands of pairs a round)."""
 
     def __init__(self, planes_i: dict[int, Plane], planes_j: dict[int, Plane], matches: list[PlaneMatch]):
         self.matches = matches
@@ -57,68 +60,135 @@ class _Design:
             self.Q_ll[k:k + 3, k:k + 3] = planes_j[pid].cov_uvd
         self.a = [planes_i[m.plane_i] for m in matches]
         self.b = [planes_j[m.plane_j] for m in matches]
+        self.n_a = np.array([p.normal for p in self.a]).reshape(-1, 3)
+        self.d_a = np.array([p.d_m for p in self.a])
+        self.uv_a = np.array([p.basis_uv for p in self.a]).reshape(-1, 2, 3)
+        self.n_b = np.array([p.normal for p in self.b]).reshape(-1, 3)
+        self.d_b = np.array([p.d_m for p in self.b])
+        self.uv_b = np.array([p.basis_uv for p in self.b]).reshape(-1, 2, 3)
+        self.skew_b = skew(self.n_b)
+        # B: rows 3k..3k+2 of match k are -I against the columns of its plane a and a block set by
+        # linearise against those of its plane b.
+        m_count = len(matches)
+        rows = np.broadcast_to(3 * np.arange(m_count)[:, None, None] + np.arange(3)[None, :, None], (m_count, 3, 3))
+        cols_i = np.array([self.block_i[m.plane_i] for m in matches], dtype=int).reshape(-1, 1, 1)
+        cols_j = np.array([self.block_j[m.plane_j] for m in matches], dtype=int).reshape(-1, 1, 1)
+        self.B_i = np.zeros((3 * m_count, n_obs))
+        self.B_i[rows, cols_i + np.arange(3)[None, None, :]] = -np.eye(3)
+        self.B_j_index = (rows, cols_j + np.arange(3)[None, None, :])
 
-    def linearise(self, T: Pose) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T``."""
-        R, t = T.rotation_matrix, T.t_xyz
+    def linearise(self, R: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T = (R, t)``."""
         m_count = len(self.matches)
-        w = np.empty(3 * m_count)
-        A = np.zeros((3 * m_count, 6))
-        B = np.zeros((3 * m_count, self.Q_ll.shape[0]))
-        for k, (pa, pb, match) in enumerate(zip(self.a, self.b, self.matches, strict=True)):
-            ua, va = pa.basis_uv
-            ub, vb = pb.basis_uv
-            m = R @ pb.normal
-            rows = slice(3 * k, 3 * k + 3)
-            w[rows] = [ua @ (m - pa.normal), va @ (m - pa.normal), pb.d_m + m @ t - pa.d_m]
-            dm_dphi = -R @ skew(pb.normal)
-            A[3 * k, 3:] = ua @ dm_dphi
-            A[3 * k + 1, 3:] = va @ dm_dphi
-            A[3 * k + 2, :3] = pb.normal  # d(m . (t + R rho))/drho = m^T R = n_b^T
-            A[3 * k + 2, 3:] = t @ dm_dphi
-            ia, jb = self.block_i[match.plane_i], self.block_j[match.plane_j]
-            B[rows, ia:ia + 3] = -np.eye(3)
-            Rub, Rvb = R @ ub, R @ vb
-            B[rows, jb:jb + 3] = [[ua @ Rub, ua @ Rvb, 0.0], [va @ Rub, va @ Rvb, 0.0], [Rub @ t, Rvb @ t, 1.0]]
-        return w, A, B
+        m = self.n_b @ R.T  # R n_b of every match
+        w = np.empty((m_count, 3))
+        w[:, :2] = np.einsum("kci,ki->kc", self.uv_a, m - self.n_a)
+        w[:, 2] = self.d_b + m @ t - self.d_a
+        dm_dphi = -(R @ self.skew_b)  # (m, 3, 3)
+        A = np.zeros((m_count, 3, 6))
+        A[:, :2, 3:] = np.einsum("kci,kij->kcj", self.uv_a, dm_dphi)
+        A[:, 2, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
+        A[:, 2, 3:] = t @ dm_dphi
+        B = self.B_i.copy()
+        Ruv_b = self.uv_b @ R.T  # (m, 2, 3): R u_b, R v_b
+        block = np.zeros((m_count, 3, 3))
+        block[:, :2, :2] = np.einsum("kci,kdi->kcd", self.uv_a, Ruv_b)
+        block[:, 2, :2] = Ruv_b @ t
+        block[:, 2, 2] = 1.0
+        B[self.B_j_index] = block
+        return w.reshape(-1), A.reshape(-1, 6), B
+
+
+@functools.lru_cache(maxsize=256)
+def _chi2_quantile(p: float, dof: int) -> float:
+    """``stats.chi2.ppf(p, dof)``, once per (p, dof): scipy's call costs more than a small pair's solve."""
+    return float(stats.chi2.ppf(p, dof))
+
+
+def _pinv_symmetric(Q: FloatArray) -> FloatArray:
+    """``np.linalg.pinv(Q, hermitian=True)`` of a symmetric ``Q`` from its eigenvectors, without
+    the SVD wrapper's cost (the same cutoff, 1e-15 of the largest eigenvalue's size)."""
+    eigval, eigvec = np.linalg.eigh(Q)
+    size = np.abs(eigval)
+    large = size > 1e-15 * size.max(initial=0.0)
+    inverse = np.divide(1.0, eigval, out=np.zeros_like(eigval), where=large)
+    return (eigvec * inverse) @ eigvec.T
+
+
+def _so3(phi: np.ndarray) -> tuple[FloatArray, FloatArray]:
+    """The rotation matrix of the rotation vector ``phi`` (3,) and its left Jacobian:
+    :meth:`Pose.exp`'s formulas for one small twist, without the quaternions between them
+    (a pair's solve takes a handful of steps, and the poses' general code cost more than the rest)."""
+    x, y, z = phi.tolist()
+    theta = math.sqrt(x * x + y * y + z * z)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    if theta < 1e-5:
+        a, b, c = 1.0 - theta**2 / 6.0, 0.5 - theta**2 / 24.0, 1.0 / 6.0 - theta**2 / 120.0
+    else:
+        a, b, c = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta**2, (theta - math.sin(theta)) / theta**3
+    K2 = K @ K
+    return _EYE3 + a * K + b * K2, _EYE3 + b * K + c * K2
+
+
+def _log(R: FloatArray, t: FloatArray) -> FloatArray:
+    """The twist ``(rho, phi)`` (6,) of the pose ``(R, t)``, as :meth:`Pose.log` (angles below pi)."""
+    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # sin(angle) axis
+    sine = math.sqrt(float(v @ v))
+    theta = math.atan2(sine, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
+    phi = v * (theta / sine) if sine > 0.0 else v
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta < 1e-5:
+        c = 1.0 / 12.0 + theta**2 / 720.0
+    else:
+        c = 1.0 / theta**2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
+    return np.concatenate([(_EYE3 - 0.5 * K + c * (K @ K)) @ t, phi])
+
+
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
 
 
 def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: int) -> dict:
-    T = T_prior
+    # The iterate as a rotation matrix and a translation: T <- T exp(step), xi = log(T_prior^-1 T).
+    R_prior, t_prior = T_prior.rotation_matrix, T_prior.t_xyz
+    R, t = R_prior, t_prior
     xi = np.zeros(6)
     for _ in range(max_iterations):
-        w, A, B = design.linearise(T)
+        w, A, B = design.linearise(R, t)
         Q_ww = B @ design.Q_ll @ B.T
         # pinv: conditions that repeat one another (one plane matched to two coplanar patches
         # twice over) leave Q_ww singular; they then count once.
-        W = np.linalg.pinv(Q_ww, hermitian=True)
-        N_p = A.T @ W @ A
+        W = _pinv_symmetric(Q_ww)
+        AtW = A.T @ W
+        N_p = AtW @ A
         N = N_p + P_prior
-        step = np.linalg.solve(N, -(A.T @ W @ w + P_prior @ xi))
-        T = T.compose(Pose.exp(step))
-        xi = T_prior.inverse().compose(T).log()
+        step = np.linalg.solve(N, -(AtW @ w + P_prior @ xi))
+        R_step, J_step = _so3(step[3:])
+        R, t = R @ R_step, R @ (J_step @ step[:3]) + t
+        xi = _log(R_prior.T @ R, R_prior.T @ (t - t_prior))
         if np.max(np.abs(step)) < 1e-11:
             break
-    w, A, B = design.linearise(T)
+    w, A, B = design.linearise(R, t)
     Q_ww = B @ design.Q_ll @ B.T
-    W = np.linalg.pinv(Q_ww, hermitian=True)
+    W = _pinv_symmetric(Q_ww)
     N_p = A.T @ W @ A
     Q_xx = np.linalg.inv(N_p + P_prior)
     Q_ee = Q_ww - A @ Q_xx @ A.T
-    return {"T": T, "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx, "Q_ee": Q_ee,
-            "omega": float(w @ W @ w + xi @ P_prior @ xi)}
+    # The quaternion on the prior's side, as composing small steps onto the prior's kept it.
+    q = matrix_to_quat(R)
+    T = Pose(-q if float(q @ T_prior.quat_wxyz) < 0.0 else q, t)
+    return {"T": T, "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx,
+            "Q_ee": Q_ee, "omega": float(w @ W @ w + xi @ P_prior @ xi)}
 
 
 def _match_statistics(sol: dict, n_matches: int) -> tuple[FloatArray, FloatArray]:
     """Per match: the 3-dof test statistic e^T Q_ee^+ e, and the largest normalised residual."""
-    e, Q_ee = sol["w"], sol["Q_ee"]
-    test = np.empty(n_matches)
-    normalised = np.empty(n_matches)
-    for k in range(n_matches):
-        rows = slice(3 * k, 3 * k + 3)
-        block = Q_ee[rows, rows]
-        test[k] = float(e[rows] @ np.linalg.pinv(block, rcond=1e-10) @ e[rows])
-        normalised[k] = float(np.max(np.abs(e[rows]) / np.sqrt(np.maximum(np.diag(block), 1e-30))))
+    e = sol["w"].reshape(n_matches, 3)
+    k = np.arange(n_matches)
+    blocks = sol["Q_ee"].reshape(n_matches, 3, n_matches, 3)[k, :, k, :]  # (m, 3, 3) diagonal blocks
+    test = np.einsum("ki,kij,kj->k", e, np.linalg.pinv(blocks, rcond=1e-10), e)
+    diag = np.diagonal(blocks, axis1=1, axis2=2)
+    normalised = np.max(np.abs(e) / np.sqrt(np.maximum(diag, 1e-30)), axis=1)
     return test, normalised
 
 
@@ -171,7 +241,7 @@ def adjust_pair(
     while active:
         sol = _solve(_Design(by_id_i, by_id_j, active), T_prior, P_prior, config.max_iterations)
         test, normalised = _match_statistics(sol, len(active))
-        critical = stats.chi2.ppf(1.0 - config.alpha, 3)
+        critical = _chi2_quantile(1.0 - config.alpha, 3)
         worst = int(np.argmax(test))
         if test[worst] <= critical or len(rejected) >= max_rejected:
             break
@@ -187,7 +257,7 @@ def adjust_pair(
 
     redundancy = 3 * len(active)
     sigma0 = float(np.sqrt(sol["omega"] / redundancy))
-    passed = bool(sol["omega"] <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
+    passed = bool(sol["omega"] <= _chi2_quantile(1.0 - config.alpha, redundancy))
     T_planes, N_p, rank, axis_sigma = _plane_only(sol)
     R_i = np.array([by_id_i[m.plane_i].normal for m in active])
     # A failed global test alone is reported, not fatal (it happens at rate alpha by chance); a link

@@ -325,6 +325,7 @@ def _checked(result: BlockResult) -> BlockResult:
 
 # Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.
 _PAIRS_PER_TASK = 64
+_TILE = 8  # stations: see link_stations
 
 
 def _link_batch(task: tuple) -> list[Link | None]:
@@ -378,7 +379,11 @@ def link_stations(
     planes = [with_window_deformation(p, s.T_obj_scan, rates, None if velocity_cov is None else velocity_cov[k])
               for k, (s, p) in enumerate(zip(stations, planes, strict=True))]
     configs = (matching, drift, pairwise, static)
-    batches = [todo[k:k + _PAIRS_PER_TASK] for k in range(0, len(todo), _PAIRS_PER_TASK)]
+    # Each task carries the stations and planes of its own pairs: pairs taken tile by tile of the
+    # station indices (sequence neighbours and loop closures fall in few tiles) ship a station to
+    # fewer tasks (at seed scale 25 stations a task instead of 65, 2.5x fewer bytes to pickle).
+    tiled = sorted(todo, key=lambda pair: (pair[0] // _TILE, pair[1] // _TILE, pair))
+    batches = [tiled[k:k + _PAIRS_PER_TASK] for k in range(0, len(tiled), _PAIRS_PER_TASK)]
     progress.start("link", total=len(batches), unit="batches")
 
     def task(batch: list[tuple[int, int]]) -> tuple:
