@@ -38,6 +38,7 @@ from kinreg.estimate.snooping import (
     variance_components,
     worst_outliers,
 )
+from kinreg.estimate.sparse import kept_heap
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
@@ -298,6 +299,12 @@ def adjust_block(
     the datum leaves parts of the network undetermined (a disconnected part without a fixed or
     directly observed station) or the normal matrix is singular.
     """
+    with kept_heap(len(poses_initial)):  # a large network's arrays reuse freed pages
+        return _adjust_block(poses_initial, observations, fixed, config, progress)
+
+
+def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], fixed: np.ndarray,
+                  config: BlockConfig, progress: Progress | None) -> BlockResult:
     progress = progress or NullProgress()
     n = len(poses_initial)
     fixed = np.asarray(fixed, dtype=bool)
