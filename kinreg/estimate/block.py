@@ -41,7 +41,7 @@ from kinreg.estimate.snooping import (
     variance_components,
     worst_outliers,
 )
-from kinreg.estimate.sparse import kept_heap
+from kinreg.estimate.sparse import kept_heap, one_blas_thread
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
@@ -310,7 +310,11 @@ def adjust_block(
     the datum leaves parts of the network undetermined (a disconnected part without a fixed or
     directly observed station) or the normal matrix is singular.
     """
-    with kept_heap(len(poses_initial)), _collector_paused():  # a large network's arrays reuse freed pages
+    # A large network: its arrays reuse freed pages, and one BLAS thread throughout (the numeric
+    # factorisations and the selected inverse had one already; elsewhere, at 100,000 stations,
+    # OpenBLAS's second thread spun 8 s of 58 s CPU waiting for work, on two busy cores).
+    n = len(poses_initial)
+    with kept_heap(n), one_blas_thread(n), _collector_paused():
         return _adjust_block(poses_initial, observations, fixed, config, progress)
 
 

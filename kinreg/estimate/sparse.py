@@ -271,7 +271,7 @@ class BlockPattern:
             # One BLAS thread, as in the selected inverse: on the shared machine CHOLMOD's two threads
             # spun waiting on each other (100,000 stations: 1.8-4.1 s CPU per factorisation, against
             # 1.2-1.5 s with one, and no faster in wall time).
-            with _one_blas_thread(self.n_blocks):
+            with one_blas_thread(self.n_blocks):
                 factor = _factorize_cholmod(Nq, natural=True, symbolic=self._symbolic)
         else:
             factor = _factorize_scipy(Nq, natural=True)
@@ -475,7 +475,7 @@ def selected_inverse(N: sp.spmatrix | sp.sparray | None, block_size: int = 6, pa
         del L  # the blocks hold the same numbers
         # Batches of small dense products: BLAS threads gain nothing there, and with the cores
         # busy (a shared machine) they waited on each other: 100,000 stations 8 s -> 27 s.
-        with _one_blas_thread(nb):
+        with one_blas_thread(nb):
             ptr, rows, Z = _takahashi(structure, d, bs)
     except _PatternNotClosedError:  # not expected with factorize's block ordering, kept as a safety net
         log.debug("selected_inverse: factor not block aligned or pattern not closed, solving instead")
@@ -506,8 +506,8 @@ def selected_inverse(N: sp.spmatrix | sp.sparray | None, block_size: int = 6, pa
 _MANY_BLOCKS = 10_000
 
 
-def _one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
-    """One BLAS thread for a large recursion. threadpoolctl finds the libraries with a ctypes
+def one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
+    """One BLAS thread for a large network's work. threadpoolctl finds the libraries with a ctypes
     callback, in which a KeyboardInterrupt is lost (printed as ignored): a Ctrl-C in that moment
     would let the run go on and end with exit 0. So the libraries are looked up once per process,
     and only for a network large enough to gain from it."""
