@@ -49,6 +49,8 @@ class Selection:
     products: np.ndarray
     gradient_at: np.ndarray  # (slots, k, 6): where J_s^T P e goes in b (6 n_free: nowhere)
     unit: np.ndarray | None = None  # (k, slots): the Jacobian of this slot is the identity (None: unknown)
+    # the sums per pattern block of the products as they are and transposed: filled by every assembly
+    sums: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((2, 0, 36)))
 
 
 class NormalEquations:
@@ -90,7 +92,8 @@ class NormalEquations:
         size = 6 * self.n_free
         gradient_at = np.stack([np.where(cols[:, s, None] >= 0, 6 * cols[:, s, None] + np.arange(6), size)
                                 for s in slots]) if slots else np.zeros((0, len(cols), 6), dtype=np.int64)
-        return Selection(cols, slots, tuple(pairs), np.empty((offset, 36)), gradient_at, unit)
+        return Selection(cols, slots, tuple(pairs), np.empty((offset, 36)), gradient_at, unit,
+                         np.empty((2, n_blocks, 36)))
 
     def assemble(self, selection: Selection, J: FloatArray, P: FloatArray,
                  e: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -117,7 +120,10 @@ class NormalEquations:
                 product = JT_P[pair.s] if pair.t in unit else JT_P[pair.s] @ J[c, pair.t]
                 products[pair.offset + lo:pair.offset + hi] = product[local].reshape(-1, 36)
         # Summed per slot pair, then the transposed ones: the order of the sums as before the chunks.
-        direct, flipped = np.zeros((n_blocks, 36)), np.zeros((n_blocks, 36))
+        # in the selection's buffers: fresh arrays of this size each time were fresh pages each time
+        direct, flipped = selection.sums if selection.sums.shape[1] == n_blocks else np.empty((2, n_blocks, 36))
+        direct.fill(0.0)
+        flipped.fill(0.0)
         for pair in selection.pairs:
             M = products[pair.offset:pair.offset + len(pair.rows)]
             direct += pair.direct @ M
