@@ -359,7 +359,7 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
     # last bits are 1e-9 m, and the updates would never fall below the convergence threshold.
     origin = poses_initial.t_xyz[0].copy()
     observations = list(observations)
-    for k in np.flatnonzero(np.isin(links.kind, [ObservationKind.STATION.value, ObservationKind.POINT.value])):
+    for k in np.flatnonzero(np.isin(links.kind, [ObservationKind.STATION.value, ObservationKind.POINT.value])).tolist():
         observations[k] = _moved(observations[k], -origin)
     vnode = velocity_nodes(observations, n)
     start = (_moved_poses(poses_initial, -origin), np.zeros((int(np.count_nonzero(vnode >= 0)), 6)))
