@@ -41,7 +41,7 @@ from kinreg.estimate.snooping import (
     variance_components,
     worst_outliers,
 )
-from kinreg.estimate.sparse import kept_heap, one_blas_thread
+from kinreg.estimate.sparse import in_threads, kept_heap, one_blas_thread
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
@@ -186,12 +186,15 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active, jacobians: bool = 
     p = np.flatnonzero(a.pose)
     if len(p):
         R = poses.rotation_matrix  # per station, once
-        for start in range(0, len(p), _CHUNK):
+
+        def step(start: int) -> None:
             chunk = p[start:start + _CHUNK]
             # a run (nearly always): views, not gathered copies
             rows: np.ndarray | slice = (slice(int(chunk[0]), int(chunk[-1]) + 1)
                                         if chunk[-1] - chunk[0] == len(chunk) - 1 else chunk)
             _pose_residuals(poses, R, velocity, a, rows, e, J if jacobians else None)
+
+        in_threads(step, range(0, len(p), _CHUNK), len(poses))
     q = np.flatnonzero(a.point)
     if len(q):
         _point_residuals(poses, a, q, e, J if jacobians else None)

@@ -39,8 +39,10 @@ import contextlib
 import ctypes
 import functools
 import logging
+import os
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Literal
 
 import numpy as np
@@ -514,6 +516,23 @@ def one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
     if ThreadpoolController is None or n_blocks < _MANY_BLOCKS:
         return contextlib.nullcontext()
     return _blas_controller().limit(limits=1, user_api="blas")
+
+
+# Threads for the chunks of a large network's per-observation work (numpy lets go of the GIL in its loops).
+_THREADS = 2
+
+
+def in_threads(work: Callable[[int], None], starts: Iterable[int], n_blocks: int) -> None:
+    """``work(start)`` for every start, in ``_THREADS`` threads for a network of ``_MANY_BLOCKS`` blocks
+    or more (else in order, here). ``work`` must write its own rows only; an exception is raised here."""
+    starts = list(starts)
+    if n_blocks < _MANY_BLOCKS or len(starts) < 2 or (os.cpu_count() or 1) < 2:
+        for start in starts:
+            work(start)
+        return
+    with ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="kinreg-chunks") as pool:
+        for _ in pool.map(work, starts):
+            pass
 
 
 # glibc's mallopt parameters, and the values kept_heap leaves behind: those glibc's dynamic
