@@ -166,3 +166,42 @@ def test_observation_tests_match_a_per_observation_reference(backend):
     assert checked == len(tests) > 100
     assert omega == pytest.approx(float(np.sum(tests.vtpv)), rel=1e-12)
     assert redundancy == pytest.approx(float(np.sum(tests.redundancy)), rel=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_the_identity_slots_and_reused_arrays_change_no_bit(backend):
+    """The assembly that skips the products of identity Jacobians, and the residuals and Jacobians
+    written into the arrays of an earlier linearisation, give the same bits as without."""
+    rng = np.random.default_rng(7)
+    obs, a, fixed, free_index, n_free, normal, state = _setup(rng, backend, drop=(3,))
+    cols = block._columns(a, free_index)
+    unit = block._unit_slots(a)
+    assert unit[:, 1].any() and not unit[:, 1].all()  # the point and the drift prior have none
+    e, J = block._linearise(*state, a)
+    earlier = block._linearise(state[0].compose(Pose.exp(rng.normal(0.0, 1e-2, (len(state[0]), 6)))), state[1], a)
+    e2, J2 = block._linearise(*state, a, out=earlier)
+    assert e2 is earlier[0] and np.array_equal(e2, e) and np.array_equal(J2, J)
+    identity = J[unit[:, 1], 1]
+    assert np.array_equal(identity, np.broadcast_to(np.eye(6), identity.shape))
+    plain, b_plain = normal.assemble(normal.select(cols), J, a.P, e)
+    selection = normal.select(cols, unit)
+    for _ in range(2):  # the selection's buffers reused
+        blocks, b = normal.assemble(selection, J, a.P, e)
+        assert np.array_equal(blocks, plain) and np.array_equal(b, b_plain)
+
+
+def test_work_in_threads_is_the_work_in_order(monkeypatch):
+    monkeypatch.setattr(ks, "_MANY_BLOCKS", 1)
+    out = np.zeros(100)
+
+    def work(start):
+        out[start:start + 10] = np.sqrt(np.arange(start, start + 10))
+
+    ks.in_threads(work, range(0, 100, 10), n_blocks=10)
+    assert np.array_equal(out, np.sqrt(np.arange(100)))
+
+    def failing(start):
+        raise ValueError(f"chunk {start}")
+
+    with pytest.raises(ValueError, match="chunk"):
+        ks.in_threads(failing, range(0, 100, 10), n_blocks=10)

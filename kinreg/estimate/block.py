@@ -21,8 +21,11 @@ component per observation kind so that reported standard deviations follow the r
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import gc
 import logging
+from collections.abc import Iterator
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,6 +41,7 @@ from kinreg.estimate.snooping import (
     variance_components,
     worst_outliers,
 )
+from kinreg.estimate.sparse import in_threads, kept_heap, one_blas_thread
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
@@ -162,27 +166,35 @@ def _weight_of(kinds: np.ndarray, weights: dict[str, float]) -> FloatArray:
 _CHUNK = 1 << 15
 
 
-def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
-               jacobians: bool = True) -> tuple[FloatArray, FloatArray]:
+def _linearise(poses: Pose, velocity: FloatArray, a: _Active, jacobians: bool = True,
+               out: tuple[FloatArray, FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
     """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) to first order
     in the residual. Pose observations: ``e = log(Z^-1 T_i^-1 T_j) - dt S_j v`` (``log(Z^-1 T_i)``
     for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``); point observations
-    ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes)."""
+    ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes). ``out``: an earlier result of the same
+    ``a`` (with ``jacobians``) to write into: the same entries are written every time, the others
+    stay zero."""
     k = len(a.idx)
-    e = np.zeros((k, 6))
-    # Slot-major underneath: each slot's Jacobians ``J[:, s]`` are contiguous (the products take them
-    # without a copy), and a slot that no observation has (no drift velocities) is never written, so
-    # its pages are never touched.
-    J = np.zeros((3, k if jacobians else 0, 6, 6)).transpose(1, 0, 2, 3)
+    if out is not None:  # 100,000 stations: 0.3 GB of fresh pages per call otherwise, 0.5 s of page faults
+        e, J = out
+    else:
+        e = np.zeros((k, 6))
+        # Slot-major underneath: each slot's Jacobians ``J[:, s]`` are contiguous (the products take
+        # them without a copy), and a slot that no observation has (no drift velocities) is never
+        # written, so its pages are never touched.
+        J = np.zeros((3, k if jacobians else 0, 6, 6)).transpose(1, 0, 2, 3)
     p = np.flatnonzero(a.pose)
     if len(p):
         R = poses.rotation_matrix  # per station, once
-        for start in range(0, len(p), _CHUNK):
+
+        def step(start: int) -> None:
             chunk = p[start:start + _CHUNK]
             # a run (nearly always): views, not gathered copies
             rows: np.ndarray | slice = (slice(int(chunk[0]), int(chunk[-1]) + 1)
                                         if chunk[-1] - chunk[0] == len(chunk) - 1 else chunk)
             _pose_residuals(poses, R, velocity, a, rows, e, J if jacobians else None)
+
+        in_threads(step, range(0, len(p), _CHUNK), len(poses))
     q = np.flatnonzero(a.point)
     if len(q):
         _point_residuals(poses, a, q, e, J if jacobians else None)
@@ -197,6 +209,14 @@ def _linearise(poses: Pose, velocity: FloatArray, a: _Active,
             J[d, 0] = -decay[:, :, None] * np.eye(6)
             J[d[pair], 1] = np.eye(6)
     return e, J
+
+
+def _unit_slots(a: _Active) -> np.ndarray:
+    """(k, 3) bool: where :func:`_linearise` makes a slot's Jacobian the identity, whatever the state
+    (the second station of a relative pose, the second link of a drift observation)."""
+    unit = np.zeros((len(a.idx), 3), dtype=bool)
+    unit[:, 1] = (a.pose & ~a.station) | (~a.pose & ~a.point & (a.nodes[:, 1] >= 0))
+    return unit
 
 
 def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active, p: np.ndarray | slice,
@@ -298,6 +318,31 @@ def adjust_block(
     the datum leaves parts of the network undetermined (a disconnected part without a fixed or
     directly observed station) or the normal matrix is singular.
     """
+    # A large network: its arrays reuse freed pages, and one BLAS thread throughout (the numeric
+    # factorisations and the selected inverse had one already; elsewhere, at 100,000 stations,
+    # OpenBLAS's second thread spun 8 s of 58 s CPU waiting for work, on two busy cores).
+    n = len(poses_initial)
+    with kept_heap(n), one_blas_thread(n), _collector_paused():
+        return _adjust_block(poses_initial, observations, fixed, config, progress)
+
+
+@contextlib.contextmanager
+def _collector_paused() -> Iterator[None]:
+    """Python's cyclic garbage collector paused (where it runs): the adjustment makes objects by
+    the hundred thousand (the moved observations, the tests), and every few hundred of them the
+    collector went through all that are alive, the caller's observations among them (at 100,000
+    stations 1.3 s of 3 s making the tests). The adjustment makes no reference cycles to collect."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], fixed: np.ndarray,
+                  config: BlockConfig, progress: Progress | None) -> BlockResult:
     progress = progress or NullProgress()
     n = len(poses_initial)
     fixed = np.asarray(fixed, dtype=bool)
@@ -316,7 +361,9 @@ def adjust_block(
     # Reduced to a local origin (the first station): at survey coordinates (UTM, 5e6 m) a pose's
     # last bits are 1e-9 m, and the updates would never fall below the convergence threshold.
     origin = poses_initial.t_xyz[0].copy()
-    observations = [_moved(o, -origin) for o in observations]
+    observations = list(observations)
+    for k in np.flatnonzero(np.isin(links.kind, [ObservationKind.STATION.value, ObservationKind.POINT.value])).tolist():
+        observations[k] = _moved(observations[k], -origin)
     vnode = velocity_nodes(observations, n)
     start = (_moved_poses(poses_initial, -origin), np.zeros((int(np.count_nonzero(vnode >= 0)), 6)))
     everything = _gather(observations, vnode, links)
@@ -439,6 +486,11 @@ def _moved(observation: RelativeObservation, shift: FloatArray) -> RelativeObser
     return dataclasses.replace(observation, Z=_moved_poses(observation.Z, shift))
 
 
+# The kinds' values by a code per kind: one dictionary look-up per observation, not an enum's ``value``.
+_KIND_CODE = {kind: code for code, kind in enumerate(ObservationKind)}
+_KIND_VALUES = np.array([kind.value for kind in ObservationKind], dtype=str)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Links:
     """What the datum check and the test list need of the observations, as arrays."""
@@ -451,7 +503,8 @@ class _Links:
     @classmethod
     def of(cls, observations: list[RelativeObservation]) -> _Links:
         count = len(observations)
-        return cls(np.array([o.kind.value for o in observations], dtype=str).reshape(-1),
+        code = np.fromiter((_KIND_CODE[o.kind] for o in observations), dtype=np.intp, count=count)
+        return cls(_KIND_VALUES[code],
                    np.fromiter((o.i for o in observations), dtype=int, count=count),
                    np.fromiter((o.j for o in observations), dtype=int, count=count),
                    np.fromiter((o.rank for o in observations), dtype=int, count=count))
@@ -519,10 +572,11 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
     returns the state (poses, velocities), the iterations, the factor of the undamped normal matrix
     at the solution (for the covariances) and whether it converged."""
     poses, velocity = start
-    selection = normal.select(_columns(a, free_index))
+    selection = normal.select(_columns(a, free_index), _unit_slots(a))
     # Each trial is linearised with its Jacobians: an accepted one (nearly all) is where the next
     # iteration starts, so its residuals are not computed twice.
     e, J = _linearise(poses, velocity, a)
+    spare = None  # the arrays of a trial not taken (or of the state before the last step), for the next
     cost = _weighted_squares(e, a.P)
     factor = None
     converged = damped = False
@@ -535,10 +589,12 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
             factor = normal.factorize(blocks, lam)
             dx = factor.solve(b).reshape(-1, 6)
             trial = _stepped(poses, velocity, fixed, dx)
-            trial_e, trial_J = _linearise(*trial, a)
+            trial_e, trial_J = _linearise(*trial, a, out=spare)
+            spare = None
             trial_cost = _weighted_squares(trial_e, a.P)
             if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + 1e-12):
                 break
+            spare = trial_e, trial_J
             lam = _FIRST_DAMPING if lam == 0.0 else 10.0 * lam
             if lam > _MAX_DAMPING:
                 break
@@ -548,12 +604,14 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
             converged = bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
             break
         (poses, velocity), fell = trial, cost - trial_cost
+        spare = e, J
         e, J, cost = trial_e, trial_J, trial_cost
         if np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
             converged = True
             break
     if not converged:
         log.info("block adjustment: no convergence after %d iterations", iterations)
+    del spare
     if damped:  # the covariances need the undamped normal matrix at the solution
         factor = normal.factorize(normal.assemble(selection, J, a.P, e)[0])
     return (poses, velocity), iterations, factor, converged, (e, J)

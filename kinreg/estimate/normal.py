@@ -48,6 +48,9 @@ class Selection:
     # every assembly
     products: np.ndarray
     gradient_at: np.ndarray  # (slots, k, 6): where J_s^T P e goes in b (6 n_free: nowhere)
+    unit: np.ndarray | None = None  # (k, slots): the Jacobian of this slot is the identity (None: unknown)
+    # the sums per pattern block of the products as they are and transposed: filled by every assembly
+    sums: np.ndarray = dataclasses.field(default_factory=lambda: np.empty((2, 0, 36)))
 
 
 class NormalEquations:
@@ -68,8 +71,10 @@ class NormalEquations:
         self.pattern = BlockPattern(self.n_free, np.concatenate(rows_), np.concatenate(cols_), 6,
                                     backend)  # type: ignore[arg-type]
 
-    def select(self, cols: np.ndarray) -> Selection:
-        """The scatter for observations with these ``cols`` (a subset of those of the pattern)."""
+    def select(self, cols: np.ndarray, unit: np.ndarray | None = None) -> Selection:
+        """The scatter for observations with these ``cols`` (a subset of those of the pattern);
+        ``unit`` (k, slots) bool where the Jacobian of a slot is always the identity (its products
+        are then not formed: ``I^T P = P`` and ``A I = A`` to the bit)."""
         n_blocks = len(self.pattern.rows)
         slots = tuple(s for s in range(cols.shape[1]) if np.any(cols[:, s] >= 0))
         pairs, offset = [], 0
@@ -87,7 +92,8 @@ class NormalEquations:
         size = 6 * self.n_free
         gradient_at = np.stack([np.where(cols[:, s, None] >= 0, 6 * cols[:, s, None] + np.arange(6), size)
                                 for s in slots]) if slots else np.zeros((0, len(cols), 6), dtype=np.int64)
-        return Selection(cols, slots, tuple(pairs), np.empty((offset, 36)), gradient_at)
+        return Selection(cols, slots, tuple(pairs), np.empty((offset, 36)), gradient_at, unit,
+                         np.empty((2, n_blocks, 36)))
 
     def assemble(self, selection: Selection, J: FloatArray, P: FloatArray,
                  e: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -101,17 +107,23 @@ class NormalEquations:
         for start in range(0, k, _CHUNK):
             c = slice(start, min(start + _CHUNK, k))
             JT_P = {}
+            # slots whose Jacobian is the identity in every observation of this step
+            unit = set() if selection.unit is None else {s for s in selection.slots if selection.unit[c, s].all()}
             for m, s in enumerate(selection.slots):
-                JT_P[s] = np.ascontiguousarray(np.swapaxes(J[c, s], 1, 2)) @ P[c]
+                JT_P[s] = P[c] if s in unit else np.ascontiguousarray(np.swapaxes(J[c, s], 1, 2)) @ P[c]
                 gradient[m, c] = np.einsum("kij,kj->ki", JT_P[s], e[c])
             for pair in selection.pairs:
                 lo, hi = np.searchsorted(pair.rows, [c.start, c.stop])
                 if lo == hi:
                     continue
                 local = pair.rows[lo:hi] - c.start
-                products[pair.offset + lo:pair.offset + hi] = (JT_P[pair.s] @ J[c, pair.t])[local].reshape(-1, 36)
+                product = JT_P[pair.s] if pair.t in unit else JT_P[pair.s] @ J[c, pair.t]
+                products[pair.offset + lo:pair.offset + hi] = product[local].reshape(-1, 36)
         # Summed per slot pair, then the transposed ones: the order of the sums as before the chunks.
-        direct, flipped = np.zeros((n_blocks, 36)), np.zeros((n_blocks, 36))
+        # in the selection's buffers: fresh arrays of this size each time were fresh pages each time
+        direct, flipped = selection.sums if selection.sums.shape[1] == n_blocks else np.empty((2, n_blocks, 36))
+        direct.fill(0.0)
+        flipped.fill(0.0)
         for pair in selection.pairs:
             M = products[pair.offset:pair.offset + len(pair.rows)]
             direct += pair.direct @ M

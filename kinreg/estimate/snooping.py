@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats
 
-from kinreg.estimate.sparse import SparseFactor, selected_inverse
+from kinreg.estimate.sparse import SparseFactor, in_threads, selected_inverse
 from kinreg.geometry import FloatArray
 from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
 
@@ -113,11 +113,14 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
     statistic, r_k, normalised, vtpv, least = (np.empty(k) for _ in range(5))
     dof = np.empty(k, dtype=np.int64)
     cov_adjusted = np.empty((k, 6, 6))
-    for start in range(0, k, _CHUNK):
+
+    def step(start: int) -> None:
         c = slice(start, min(start + _CHUNK, k))
         w, V = np.linalg.eigh(0.5 * (P[c] + np.transpose(P[c], (0, 2, 1)))) if eig is None else (eig[0][c], eig[1][c])
         figures = _figures(e[c], J[c], cols[c], slots, [at[c] for at in off_at], diag, off, w, V)
         statistic[c], dof[c], r_k[c], normalised[c], vtpv[c], least[c], cov_adjusted[c] = figures
+
+    in_threads(step, range(0, k, _CHUNK), len(diag))
     return (statistic, dof, r_k, normalised, vtpv, least, cov_adjusted), diag
 
 

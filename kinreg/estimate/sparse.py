@@ -36,9 +36,13 @@ batched numpy step (100,000 stations: 41,605 supernodes, 205 depths).
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import logging
-from collections.abc import Callable
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from typing import Literal
 
 import numpy as np
@@ -269,7 +273,7 @@ class BlockPattern:
             # One BLAS thread, as in the selected inverse: on the shared machine CHOLMOD's two threads
             # spun waiting on each other (100,000 stations: 1.8-4.1 s CPU per factorisation, against
             # 1.2-1.5 s with one, and no faster in wall time).
-            with _one_blas_thread(self.n_blocks):
+            with one_blas_thread(self.n_blocks):
                 factor = _factorize_cholmod(Nq, natural=True, symbolic=self._symbolic)
         else:
             factor = _factorize_scipy(Nq, natural=True)
@@ -473,7 +477,7 @@ def selected_inverse(N: sp.spmatrix | sp.sparray | None, block_size: int = 6, pa
         del L  # the blocks hold the same numbers
         # Batches of small dense products: BLAS threads gain nothing there, and with the cores
         # busy (a shared machine) they waited on each other: 100,000 stations 8 s -> 27 s.
-        with _one_blas_thread(nb):
+        with one_blas_thread(nb):
             ptr, rows, Z = _takahashi(structure, d, bs)
     except _PatternNotClosedError:  # not expected with factorize's block ordering, kept as a safety net
         log.debug("selected_inverse: factor not block aligned or pattern not closed, solving instead")
@@ -504,14 +508,73 @@ def selected_inverse(N: sp.spmatrix | sp.sparray | None, block_size: int = 6, pa
 _MANY_BLOCKS = 10_000
 
 
-def _one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
-    """One BLAS thread for a large recursion. threadpoolctl finds the libraries with a ctypes
+def one_blas_thread(n_blocks: int) -> contextlib.AbstractContextManager:
+    """One BLAS thread for a large network's work. threadpoolctl finds the libraries with a ctypes
     callback, in which a KeyboardInterrupt is lost (printed as ignored): a Ctrl-C in that moment
     would let the run go on and end with exit 0. So the libraries are looked up once per process,
     and only for a network large enough to gain from it."""
     if ThreadpoolController is None or n_blocks < _MANY_BLOCKS:
         return contextlib.nullcontext()
     return _blas_controller().limit(limits=1, user_api="blas")
+
+
+# Threads for the chunks of a large network's per-observation work (numpy lets go of the GIL in its loops).
+_THREADS = 2
+
+
+def in_threads(work: Callable[[int], None], starts: Iterable[int], n_blocks: int) -> None:
+    """``work(start)`` for every start, in ``_THREADS`` threads for a network of ``_MANY_BLOCKS`` blocks
+    or more (else in order, here). ``work`` must write its own rows only; an exception is raised here."""
+    starts = list(starts)
+    if n_blocks < _MANY_BLOCKS or len(starts) < 2 or (os.cpu_count() or 1) < 2:
+        for start in starts:
+            work(start)
+        return
+    with ThreadPoolExecutor(max_workers=_THREADS, thread_name_prefix="kinreg-chunks") as pool:
+        for _ in pool.map(work, starts):
+            pass
+
+
+# glibc's mallopt parameters, and the values kept_heap leaves behind: those glibc's dynamic
+# threshold reaches once a numpy process has freed an array of 32 MB or more (nearly at once).
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+_MMAP_THRESHOLD_AFTER = 32 << 20
+_TRIM_THRESHOLD_AFTER = 64 << 20
+
+
+@contextlib.contextmanager
+def kept_heap(n_blocks: int) -> Iterator[bool]:
+    """Large allocations from the heap, and freed memory kept in it, while a large network is
+    adjusted (glibc's ``mallopt``; yields whether it was set). Every array above glibc's mmap
+    threshold (32 MB at most) is otherwise fresh pages from the kernel, which it zeroes and maps
+    one fault at a time: at 100,000 stations 40 s of 92 s CPU were the kernel's (a million page
+    faults), 16 s with this. Afterwards the thresholds go back to ``_MMAP_THRESHOLD_AFTER`` and
+    ``_TRIM_THRESHOLD_AFTER`` (not readable beforehand) and the heap's free memory to the kernel
+    (``malloc_trim``). Not below ``_MANY_BLOCKS`` blocks; a no-op (yields False) where not glibc."""
+    libc = _glibc() if n_blocks >= _MANY_BLOCKS else None
+    if libc is None or not (libc.mallopt(_M_MMAP_THRESHOLD, 1 << 30)
+                            and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1)):
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_AFTER)
+        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_AFTER)
+        libc.malloc_trim(0)
+
+
+@functools.cache
+def _glibc() -> ctypes.CDLL | None:
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt, libc.malloc_trim  # noqa: B018  (glibc has both)
+    except (OSError, AttributeError):  # not glibc
+        return None
+    return libc
 
 
 @functools.cache
