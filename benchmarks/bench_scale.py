@@ -47,9 +47,12 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from kinreg.simulation.run import SimulationConfig
 
 REPO = Path(__file__).resolve().parents[1]
 # The repository's own venv when there is one (a worktree may have none: the running interpreter's).
@@ -95,15 +98,17 @@ def seed_like_config(n_points: float, seed: int = 1) -> Any:
     return replace(probe, duration_s=duration, sensor=replace(sensor, pulse_rate_hz=SEED_POINTS_PER_S / kept))
 
 
-def generate(folder: Path, n_points: float, workers: int) -> tuple[Path, Path, dict[str, Any]]:
-    """Write ``run_trajectory.txt`` and ``run_cloud.laz`` of a seed-like run into ``folder``."""
+def generate(folder: Path, n_points: float, workers: int,
+             config: SimulationConfig | None = None) -> tuple[Path, Path, dict[str, Any]]:
+    """Write ``run_trajectory.txt`` and ``run_cloud.laz`` of a seed-like run into ``folder``
+    (``config``: another simulation than :func:`seed_like_config`'s of ``n_points``)."""
     import laspy
 
     from kinreg.run.executor import make_executor
     from kinreg.simulation.files import _las_header, write_trajectory_geoslam
 
     t0 = time.perf_counter()
-    config = seed_like_config(n_points)
+    config = seed_like_config(n_points) if config is None else config
     run = _run_of(config)
     traj_path, cloud_path = folder / "run_trajectory.txt", folder / "run_cloud.laz"
     write_trajectory_geoslam(traj_path, run.slam)

@@ -104,7 +104,6 @@ def match_planes(
     group_b = _coplanar_groups(n_b, d_b, config)
     group_a = _coplanar_groups(n_a, d_a, config)
     candidates: dict[tuple[int, int], tuple[float, float, float]] = {}
-    R_i_j = T_i_j.rotation_matrix
     boxes_a: dict[int, FloatArray] = {}  # each plane's own box and hull in frame i, once per call
     hulls_b: dict[int, FloatArray] = {}
     for a, b in zip(*np.nonzero(gate), strict=True):
@@ -112,7 +111,7 @@ def match_planes(
         if a not in boxes_a:
             boxes_a[a] = _box_in_plane(planes_i[a].hull_xyz, c_a[a], u, v)
         if b not in hulls_b:
-            hulls_b[b] = planes_j[b].hull_xyz @ R_i_j.T + T_i_j.t_xyz  # T_i_j.apply
+            hulls_b[b] = T_i_j.apply(planes_j[b].hull_xyz)
         box_a = boxes_a[a]
         box_b = _box_in_plane(hulls_b[b], c_a[a], u, v)
         share = _overlap_share(box_a, box_b)

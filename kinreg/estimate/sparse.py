@@ -36,11 +36,9 @@ batched numpy step (100,000 stations: 41,605 supernodes, 205 depths).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import functools
 import logging
 import os
-import sys
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Literal
@@ -50,6 +48,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from kinreg.errors import EstimationError
+from kinreg.heap import give_back_freed_memory, keep_freed_memory
 
 log = logging.getLogger(__name__)
 
@@ -535,46 +534,19 @@ def in_threads(work: Callable[[int], None], starts: Iterable[int], n_blocks: int
             pass
 
 
-# glibc's mallopt parameters, and the values kept_heap leaves behind: those glibc's dynamic
-# threshold reaches once a numpy process has freed an array of 32 MB or more (nearly at once).
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-_MMAP_THRESHOLD_AFTER = 32 << 20
-_TRIM_THRESHOLD_AFTER = 64 << 20
-
-
 @contextlib.contextmanager
 def kept_heap(n_blocks: int) -> Iterator[bool]:
     """Large allocations from the heap, and freed memory kept in it, while a large network is
-    adjusted (glibc's ``mallopt``; yields whether it was set). Every array above glibc's mmap
-    threshold (32 MB at most) is otherwise fresh pages from the kernel, which it zeroes and maps
-    one fault at a time: at 100,000 stations 40 s of 92 s CPU were the kernel's (a million page
-    faults), 16 s with this. Afterwards the thresholds go back to ``_MMAP_THRESHOLD_AFTER`` and
-    ``_TRIM_THRESHOLD_AFTER`` (not readable beforehand) and the heap's free memory to the kernel
-    (``malloc_trim``). Not below ``_MANY_BLOCKS`` blocks; a no-op (yields False) where not glibc."""
-    libc = _glibc() if n_blocks >= _MANY_BLOCKS else None
-    if libc is None or not (libc.mallopt(_M_MMAP_THRESHOLD, 1 << 30)
-                            and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1)):
+    adjusted (:func:`kinreg.heap.keep_freed_memory`; yields whether it was set): at 100,000
+    stations 40 s of 92 s CPU were the kernel's (a million page faults), 16 s with this.
+    Afterwards :func:`kinreg.heap.give_back_freed_memory`. Not below ``_MANY_BLOCKS`` blocks."""
+    if n_blocks < _MANY_BLOCKS or not keep_freed_memory():
         yield False
         return
     try:
         yield True
     finally:
-        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_AFTER)
-        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_AFTER)
-        libc.malloc_trim(0)
-
-
-@functools.cache
-def _glibc() -> ctypes.CDLL | None:
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        libc = ctypes.CDLL(None)
-        libc.mallopt, libc.malloc_trim  # noqa: B018  (glibc has both)
-    except (OSError, AttributeError):  # not glibc
-        return None
-    return libc
+        give_back_freed_memory()
 
 
 @functools.cache

@@ -62,6 +62,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from kinreg.errors import ConfigError
+from kinreg.heap import keep_freed_memory
 from kinreg.progress import NullProgress, Progress
 from kinreg.run.liveness import process_alive
 
@@ -109,28 +110,7 @@ def start_worker(caller_pid: int) -> None:
     die_with_parent(ancestor_pid=caller_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     limit_worker_threads()
-    reuse_freed_memory()
-
-
-# mallopt(3) parameters of glibc.
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-
-
-def reuse_freed_memory() -> bool:
-    """Serve large allocations from the heap and keep freed memory in it (glibc's ``mallopt``), so
-    that a worker's next scan reuses the pages of the last one instead of asking the kernel for
-    fresh pages, which it zeroes first: the planes stage of a 20 M-point run spent 15-25 % of its
-    CPU in page faults (1.8-3.2 s system time of 10-12 s, 0.3 s with this; benchmarks/RESULTS.md).
-    A worker's resident memory then stays at its peak between tasks. Linux with glibc; elsewhere
-    a no-op that returns False. Never called in the calling process."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL(None)
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, 1 << 30) and libc.mallopt(_M_TRIM_THRESHOLD, (1 << 31) - 1))
-    except (OSError, AttributeError):  # not glibc
-        return False
+    keep_freed_memory()  # a worker's next scan reuses the pages of the last one
 
 
 def limit_worker_threads() -> None:
