@@ -57,7 +57,7 @@ def bench_links() -> dict:
         seq = slice_quasi_static(traj, cloud, cfg.slicing)
     with seq:
         t0 = time.perf_counter()
-        stations, planes = detect_all_planes(seq, cfg.planes, NullProgress())
+        stations, planes = detect_all_planes(seq, cfg.planes, NullProgress(), trajectory=traj)
         t_planes = time.perf_counter() - t0
     n_pairs = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), cfg.matching))
     t0 = time.perf_counter()

@@ -180,6 +180,14 @@ class Plane:
     # how the inliers' time changes across the plane [s/m], along basis_uv: a plane swept over
     # while walking is seen early at one end and late at the other, so a drift velocity tilts it
     t_slope_s_per_m: tuple[float, float] = (0.0, 0.0)
+    # Where the sensor was while it saw the plane (scan frame [m]): the mean over the inliers of its
+    # position at each one's time, and how that changes across the plane along basis_uv ((3, 2),
+    # [m/m]); None where unknown (a static scan, a scan without a trajectory). Where the attitude
+    # error turns each point about the sensor (GNSS/INS-like drift), the plane moves about these,
+    # not about where the sensor was at the plane's mean time: a walk that slows down inside the
+    # window puts the two 0.3 m apart (3 mm at 10 mrad).
+    sensor_xyz: FloatArray | None = None
+    sensor_slope: FloatArray | None = None
 
     def cov_nd(self) -> FloatArray:
         """The (rank-3) 4x4 covariance of (nx, ny, nz, d)."""

@@ -316,8 +316,8 @@ def test_the_deskewed_tilt_is_the_patch_average_not_the_instant_sway():
         tau = np.asarray(tau, dtype=float)
         return np.stack([0.4 * tau + 0.05 * np.sin(2 * np.pi * 2.0 * tau), 0 * tau, 0 * tau], axis=-1)
 
-    def mapped(x, tau):
-        p = sensor(tau)
+    def mapped(x, tau, where=None):
+        p = sensor(tau) if where is None else where
         return (np.asarray(x) - p) @ R.T + p
 
     # The wall y = 3 over x in [-2, 2] (seen at tau = x / 0.4: slope 2.5 s/m along x), z in [0, 2].
@@ -325,7 +325,7 @@ def test_the_deskewed_tilt_is_the_patch_average_not_the_instant_sway():
     pts = np.column_stack([rng.uniform(-2, 2, 20000), np.full(20000, 3.0), rng.uniform(0, 2, 20000)])
     moved = mapped(pts, pts[:, 0] / 0.4)
     c = moved.mean(axis=0)
-    normal = np.linalg.svd(moved - c)[2][-1]
+    normal = np.linalg.svd(moved - c, full_matrices=False)[2][-1]
     normal *= np.sign(normal[1])
     # The patch about x = 0.12 m (its mean time tau_c), as kinreg's plane carries it.
     wall = Plane(0, 0, np.array([0.0, 1.0, 0.0]), 3.0, np.array([0.4 * tau_c, 3.0, 1.0]),
@@ -337,3 +337,59 @@ def test_the_deskewed_tilt_is_the_patch_average_not_the_instant_sway():
     assert tilt(wall) < 2e-4
     from dataclasses import replace as replaced
     assert tilt(replaced(wall, area_m2=0.0)) > 2e-3  # the instant's rate (1 cm apart): the sway in it
+
+
+def test_a_wall_seen_from_a_walk_that_stops_turns_about_where_the_sensor_was():
+    """GNSS/INS-like drift: the attitude error (7 mrad of heading) turns each point about the sensor
+    where it was. The sensor walks along a wall y = 3 at 0.6 m/s for the first half of the window,
+    then stands: the wall's points were seen 0.45 m behind the sensor's position at their mean time,
+    on average, so a turn about that position misplaces the wall by 3 mm. Deskewed about where the
+    sensor was while it saw them (the plane's sensor moments, from the track), the wall is where it
+    is to 0.05 mm; about the mean time's position it is not."""
+    from kinreg.estimate.drift import _deskewed, plane_time_offsets
+    from kinreg.geometry import rotvec_to_quat
+    from kinreg.types import Plane
+
+    R = Pose(rotvec_to_quat(np.array([0.0, 0.0, 7e-3])), np.zeros(3)).rotation_matrix
+
+    def sensor(tau):
+        tau = np.asarray(tau, dtype=float)
+        return np.stack([0.6 * np.minimum(tau, 0.0), 0 * tau, 0 * tau], axis=-1)
+
+    def turned(x, tau, R):
+        p = sensor(tau)
+        return (np.asarray(x) - p) @ R.T + p
+
+    rng = np.random.default_rng(3)
+    tau = rng.uniform(-3.0, 3.0, 40000)
+    truth = np.column_stack([sensor(tau)[:, 0] + rng.uniform(-1.0, 1.0, len(tau)), np.full(len(tau), 3.0),
+                             rng.uniform(0.0, 2.0, len(tau))])
+    seen = turned(truth, tau, R.T)  # the drift: the heading error turns each point about the sensor
+    c = seen.mean(axis=0)
+    normal = np.linalg.svd(seen - c, full_matrices=False)[2][-1]
+    normal *= np.sign(normal[1])
+    u = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+    u /= np.linalg.norm(u)
+    basis = np.array([u, np.cross(normal, u)])
+    st = (seen - c) @ basis.T
+    corners = [(a, b) for a in (st[:, 0].min() - 0.01, st[:, 0].max() + 0.01)
+               for b in (st[:, 1].min() - 0.01, st[:, 1].max() + 0.01)]
+    wall = Plane(0, 0, normal, float(normal @ c), c, basis, np.eye(3) * 1e-8, c + np.array(corners) @ basis,
+                 0.0, len(tau), 0.0)
+    track_t = np.linspace(-3.5, 3.5, 701)
+    times = plane_time_offsets(seen, tau, 0.0, [wall], 0.05, (track_t, sensor(track_t)))
+    (wall,) = times.applied([wall])
+    assert wall.sensor_xyz is not None
+    assert wall.sensor_xyz[0] == pytest.approx(-0.45, abs=0.02)
+    assert float(np.linalg.norm(sensor(wall.t_offset_s))) < 0.02  # the mean time's position: not there
+
+    def mapped(x, t, where=None):  # the correction: back about the sensor
+        p = sensor(t) if where is None else where
+        return (np.asarray(x) - p) @ R.T + p
+
+    def offset_error(plane):
+        moved = _deskewed(plane, mapped)
+        return abs(float(moved.normal @ moved.centroid_xyz - 3.0 * moved.normal[1]))
+
+    assert offset_error(wall) < 5e-5
+    assert offset_error(replace(wall, sensor_xyz=None, sensor_slope=None)) > 2e-3

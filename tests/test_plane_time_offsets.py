@@ -53,7 +53,7 @@ def test_offsets_and_slopes_equal_a_float64_pass_over_every_point():
     planes.append(empty)
     points = np.concatenate([*chunks, rng.uniform(-15, 15, (50_000, 3)), [[np.nan, 0.0, 0.0]]])
     stamps = 500.0 + rng.uniform(-5.0, 5.0, len(points))
-    offsets, slopes = plane_time_offsets(points, stamps, 500.0, planes, 0.03)
+    offsets, slopes, _, _ = plane_time_offsets(points, stamps, 500.0, planes, 0.03)
     want_offsets, want_slopes = _one_pass(points, stamps, 500.0, planes, 0.03)
     assert np.array_equal(offsets, want_offsets, equal_nan=True)
     np.testing.assert_allclose(slopes, want_slopes, rtol=0, atol=1e-12)
@@ -71,5 +71,5 @@ def test_a_hull_moved_by_rounding_keeps_its_vertex_points():
     stamps = np.concatenate([np.full(len(p.hull_xyz), 10.0), [0.0]])
     for shift in (0.0, 1e-14, -1e-14):
         moved = replace(p, hull_xyz=p.hull_xyz + shift * (p.hull_xyz - p.centroid_xyz))
-        offsets, _ = plane_time_offsets(points, stamps, 0.0, [moved], 0.03)
+        offsets = plane_time_offsets(points, stamps, 0.0, [moved], 0.03).offsets
         assert offsets[0] == np.mean(stamps)

@@ -76,7 +76,7 @@ def test_time_offset_and_slope_of_a_swept_plane():
     pts = np.column_stack([x, y, -1.5 + RNG.normal(0, 0.002, 4000)])
     stamps = 100.0 + 0.3 + 2.0 * x + RNG.normal(0, 0.05, 4000)
     floor = plane_in_scan((0, 0, 1), -1.5, (0, 0, -1.5), (2.0, 1.0), Pose.identity(), 0, 0, 1e-4, 3e-4, None)
-    offsets, slopes = plane_time_offsets(pts, stamps, 100.0, [floor], 0.03)
+    offsets, slopes, _, _ = plane_time_offsets(pts, stamps, 100.0, [floor], 0.03)
     assert offsets[0] == pytest.approx(0.3, abs=0.02)
     along_x = np.array([1.0, 0.0, 0.0])
     in_plane = 2.0 * along_x - 2.0 * (along_x @ floor.normal) * floor.normal

@@ -87,8 +87,10 @@ class DriftCorrection:
         """Per time (n,): the map that takes the jumps out (see :func:`jump_removal`)."""
         return jump_removal(self.jump_times_s, self.jump_steps, stamps_s)
 
-    def at(self, query_s: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Rotation vectors, shifts and pivots (each (n, 3)) at the times ``query_s`` (n,)."""
+    def at(self, query_s: FloatArray, own_xyz: FloatArray | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Rotation vectors, shifts and pivots (each (n, 3)) at the times ``query_s`` (n,).
+        ``own_xyz`` (n, 3): where the sensor was, instead of the trajectory's positions at
+        ``query_s`` (for a point that stands for many, seen at different times: the mean of theirs)."""
         t = np.clip(query_s, self.stamps_s[0], self.stamps_s[-1])
         if len(self.stamps_s) == 1:
             pivots = self._pivots
@@ -101,7 +103,8 @@ class DriftCorrection:
         values = spline(t)
         pivot = values[:, 6:] + origin
         if self.coupling > 0.0:
-            pivot += self.coupling * (self._own_positions(np.asarray(query_s, dtype=np.float64)) - pivot)
+            own = self._own_positions(np.asarray(query_s, dtype=np.float64)) if own_xyz is None else own_xyz
+            pivot += self.coupling * (own - pivot)
         return values[:, :3], values[:, 3:6], pivot
 
     @functools.cached_property

@@ -7,12 +7,13 @@ from __future__ import annotations
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
 from kinreg.config import DriftConfig
 from kinreg.estimate.correction import DriftCorrection
-from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, rotvec_to_quat, skew
+from kinreg.geometry import FloatArray, Pose, interpolate_positions, quat_to_rotvec, rotvec_to_quat, skew
 from kinreg.types import (
     BlockResult,
     Link,
@@ -208,11 +209,16 @@ class _WindowMap:
         return cls(correction, t_s, initial, adjusted, coupling, rho_pos, rho_rot, r_c, delta_c, p_c,
                    Pose(rotvec_to_quat(r_c), np.zeros(3)).rotation_matrix)
 
-    def __call__(self, x: FloatArray, tau: FloatArray) -> FloatArray:
-        rotvec, delta, pivot = self.correction.at(self.t_s + tau)
+    def __call__(self, x: FloatArray, tau: FloatArray, sensor: FloatArray | None = None) -> FloatArray:
+        """``x`` (n, 3) seen at ``tau`` (n,) from the centre, from the sensor at ``sensor`` (n, 3, scan
+        frame; None: where the trajectory had it at that time)."""
+        own = None if sensor is None else self.initial.apply(sensor)
+        rotvec, delta, pivot = self.correction.at(self.t_s + tau, own)
         r_c, delta_c = self.r_c, self.delta_c
-        rigid = (pivot - self.p_c) @ (self.R_0 - np.eye(3)).T  # the centre's rotation about the moving pivot
-        delta = delta_c + (1.0 - self.coupling) * rigid + self.rho_pos * (delta - delta_c - rigid)
+        # the centre's rotation about the moving pivot, in the share in which it is one rigid motion
+        # of the window (where it turns about the sensor, the pivot's motion is the shear itself)
+        rigid = (1.0 - self.coupling) * (pivot - self.p_c) @ (self.R_0 - np.eye(3)).T
+        delta = delta_c + rigid + self.rho_pos * (delta - delta_c - rigid)
         R_c = Pose(rotvec_to_quat(r_c + self.rho_rot * (rotvec - r_c)), np.zeros_like(delta)).rotation_matrix
         y = x @ self.initial.rotation_matrix.T + self.initial.t_xyz
         y = np.einsum("nij,nj->ni", R_c, y - pivot) + pivot + delta
@@ -225,7 +231,10 @@ _STEP_M = 0.01  # along the tangents, for the tilt: the least half-distance of t
 def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.inf, np.inf),
               over_patch: bool = True) -> Plane:
     """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and its tilt from points on
-    either side of it along each tangent, each at the time it was seen there (its time slope). The
+    either side of it along each tangent, each at the time it was seen there (its time slope);
+    where the map turns about the sensor (``over_patch``), each from where the sensor was on
+    average while it saw that part of the plane (``sensor_xyz``, ``sensor_slope``), not where it was
+    at the mean time (a walk that slows down inside the window puts the two 0.3 m apart). The
     points lie half the patch's size apart (at least ``_STEP_M``): a plane fit averages the motion
     over the time it took to see the patch, so the tilt is the map's change over that time, not its
     rate at one instant (which would carry the sensor's sway into it where the map turns about the
@@ -243,15 +252,22 @@ def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.i
     u, v = h[0] * p.basis_uv[0], h[1] * p.basis_uv[1]
     slope = h * slope
     c0 = p.centroid_xyz
+    sensor = None
+    if over_patch and p.sensor_xyz is not None and p.sensor_slope is not None:
+        # where the sensor was, on average, while it saw each of the five points' neighbourhoods
+        gu, gv = h[0] * p.sensor_slope[:, 0], h[1] * p.sensor_slope[:, 1]
+        s0 = p.sensor_xyz
+        sensor = np.array([s0, s0 + gu, s0 - gu, s0 + gv, s0 - gv])
     c, cu1, cu0, cv1, cv0 = mapped(np.array([c0, c0 + u, c0 - u, c0 + v, c0 - v]),
-                                   tau + np.array([0.0, slope[0], -slope[0], slope[1], -slope[1]]))
+                                   tau + np.array([0.0, slope[0], -slope[0], slope[1], -slope[1]]), sensor)
     du, dv = cu1 - cu0, cv1 - cv0
     normal = np.cross(du, dv)
     normal /= np.linalg.norm(normal) * (1.0 if normal @ p.normal > 0.0 else -1.0)
     u_new = du - (du @ normal) * normal
     u_new /= np.linalg.norm(u_new)
     return replace(p, normal=normal, d_m=float(normal @ c - (p.normal @ p.centroid_xyz - p.d_m)), centroid_xyz=c,
-                   hull_xyz=mapped(p.hull_xyz, np.full(len(p.hull_xyz), tau)),
+                   hull_xyz=mapped(p.hull_xyz, np.full(len(p.hull_xyz), tau),
+                                   None if sensor is None else np.broadcast_to(sensor[0], p.hull_xyz.shape)),
                    basis_uv=np.array([u_new, np.cross(normal, u_new)]))
 
 
@@ -279,16 +295,45 @@ _EPS32 = float(np.finfo(np.float32).eps)
 _EXTENT_MARGIN_M = 1e-9
 
 
+class PlaneTimes(NamedTuple):
+    """When and from where each plane of a scan was seen (:func:`plane_time_offsets`)."""
+
+    offsets: np.ndarray  # (n,) [s]
+    slopes: np.ndarray  # (n, 2) [s/m]
+    sensor: np.ndarray  # (n, 3) [m]
+    sensor_slopes: np.ndarray  # (n, 3, 2) [m/m]
+
+    def applied(self, planes: Sequence[Plane]) -> tuple[Plane, ...]:
+        """The planes with their times (and sensor positions, where known) set; a plane without
+        points keeps its own."""
+        out = []
+        for k, p in enumerate(planes):
+            if not np.isfinite(self.offsets[k]):
+                out.append(p)
+                continue
+            g = self.slopes[k]
+            slope = (float(g[0]), float(g[1])) if np.all(np.isfinite(g)) else p.t_slope_s_per_m
+            known = bool(np.all(np.isfinite(self.sensor[k])))
+            out.append(replace(p, t_offset_s=float(self.offsets[k]), t_slope_s_per_m=slope,
+                               sensor_xyz=self.sensor[k].copy() if known else p.sensor_xyz,
+                               sensor_slope=np.nan_to_num(self.sensor_slopes[k]) if known else p.sensor_slope))
+        return tuple(out)
+
+
 def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float, planes: Sequence[Plane],
-                       band_m: float) -> tuple[np.ndarray, np.ndarray]:
+                       band_m: float, track: tuple[np.ndarray, np.ndarray] | None = None) -> PlaneTimes:
     """Per plane: the mean time of its points minus ``t_s`` [s], and the slope of their time
     across the plane along its ``basis_uv`` [s/m] (least squares; (n, 2)); the points of a plane
     are those within ``band_m`` of it and inside its extent (``nan`` for a plane without such
-    points)."""
+    points). With ``track`` (times (m,), sensor positions (m, 3) in the scan's frame, covering the
+    points' times), also the mean of the sensor's position at the points' times (n, 3) and its
+    slope across the plane (n, 3, 2), else ``nan``."""
     offsets = np.full(len(planes), np.nan)
     slopes = np.full((len(planes), 2), np.nan)
+    sensor = np.full((len(planes), 3), np.nan)
+    sensor_slopes = np.full((len(planes), 3, 2), np.nan)
     if not planes or not len(points_xyz):
-        return offsets, slopes
+        return PlaneTimes(offsets, slopes, sensor, sensor_slopes)
     # Candidates from a float32 product for several planes at once (a float64 pass over every
     # point per plane cost more than the rest of this function); a margin of several float32
     # roundings of the largest coordinate keeps every point the float64 test takes, and that test
@@ -335,10 +380,18 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             # numpy's sums, not BLAS's dot: the same bits for any number of BLAS threads.
             sv = np.sum(s * v)
             A = np.array([[np.sum(s * s), sv], [sv, np.sum(v * v)]])
-            if len(t) >= 3 and np.linalg.cond(A) < 1e8:
+            solvable = len(t) >= 3 and np.linalg.cond(A) < 1e8
+            if solvable:
                 dt = t - t.mean()
                 slopes[k] = np.linalg.solve(A, np.array([np.sum(s * dt), np.sum(v * dt)]))
-    return offsets, slopes
+            if track is not None:
+                where = interpolate_positions(track[0], track[1], t)
+                sensor[k] = np.mean(where, axis=0)
+                if solvable:
+                    where -= sensor[k]
+                    sensor_slopes[k] = np.linalg.solve(A, np.array([np.sum(s[:, None] * where, axis=0),
+                                                                    np.sum(v[:, None] * where, axis=0)])).T
+    return PlaneTimes(offsets, slopes, sensor, sensor_slopes)
 
 
 def rms_time_offset(offsets: np.ndarray) -> float:

@@ -87,6 +87,21 @@ def choose_windows(trajectory: Trajectory, edges: FloatArray, counts: np.ndarray
     return windows, kept_ranges, skipped, len(ranges)
 
 
+# The sensor's positions through one window, in its scan frame: times (m,), positions (m, 3).
+SensorTrack = tuple[FloatArray, FloatArray]
+
+
+def sensor_track(trajectory: Trajectory, window: ScanWindow) -> SensorTrack:
+    """The trajectory's rows that cover ``window`` (one beyond either end), the positions in the
+    window's scan frame (``T_obj_scan^-1``): where the sensor was when it saw each point."""
+    stamps = trajectory.stamps_s
+    a = max(int(np.searchsorted(stamps, window.t_start_s, side="right")) - 1, 0)
+    b = min(int(np.searchsorted(stamps, window.t_end_s, side="left")) + 1, len(stamps) - 1)
+    rows = slice(a, b + 1)
+    local = window.T_obj_scan.apply_inverse(trajectory.poses.t_xyz[rows])
+    return stamps[rows].copy(), np.asarray(local, dtype=np.float64)
+
+
 def window_smear_m(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], rates: DriftRates) -> FloatArray:
     """Per station: how far the measured drift moves a plane over half its window [m], the
     position rate and the rotation rate times the median distance of the station's planes

@@ -41,7 +41,17 @@ def planes_to_arrays(planes: Sequence[tuple[Plane, ...]]) -> Arrays:
         "rms_m": _f([p.rms_m for p in flat]),
         "t_offset_s": _f([p.t_offset_s for p in flat]),
         "t_slope_s_per_m": _f([p.t_slope_s_per_m for p in flat], (2,)),
+        "sensor_xyz": _f([_nan_if_none(p.sensor_xyz, (3,)) for p in flat], (3,)),
+        "sensor_slope": _f([_nan_if_none(p.sensor_slope, (3, 2)) for p in flat], (3, 2)),
     }
+
+
+def _nan_if_none(a: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    return np.full(shape, np.nan) if a is None else a
+
+
+def _none_if_nan(a: np.ndarray) -> np.ndarray | None:
+    return None if np.all(np.isnan(a)) else a.copy()
 
 
 def planes_from_arrays(a: Mapping[str, np.ndarray]) -> list[tuple[Plane, ...]]:
@@ -52,7 +62,8 @@ def planes_from_arrays(a: Mapping[str, np.ndarray]) -> list[tuple[Plane, ...]]:
               a["centroid_xyz"][k].copy(), a["basis_uv"][k].copy(), a["cov_uvd"][k].copy(),
               a["hull_xyz"][hull_at[k]:hull_at[k + 1]].copy(), float(a["area_m2"][k]),
               int(a["n_points"][k]), float(a["rms_m"][k]), float(a["t_offset_s"][k]),
-              (float(a["t_slope_s_per_m"][k, 0]), float(a["t_slope_s_per_m"][k, 1])))
+              (float(a["t_slope_s_per_m"][k, 0]), float(a["t_slope_s_per_m"][k, 1])),
+              _none_if_nan(a["sensor_xyz"][k]), _none_if_nan(a["sensor_slope"][k]))
         for k in range(len(a["scan_id"]))
     ]
     at = _offsets(a["scan_plane_counts"])

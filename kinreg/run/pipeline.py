@@ -470,11 +470,11 @@ def link_to_folder(
     check_writable_target(out / "planes.csv", overwrite)
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
-    _, _, sequence = read_and_slice(trajectory_path, cloud_path, config, progress)
+    trajectory, _, sequence = read_and_slice(trajectory_path, cloud_path, config, progress)
     seconds["slice"] = time.perf_counter() - t0
     with sequence, make_executor(workers, scheduler) as executor:
         t0 = time.perf_counter()
-        stations, planes = detect_all_planes(sequence, config.planes, progress, executor)
+        stations, planes = detect_all_planes(sequence, config.planes, progress, executor, trajectory)
         seconds["planes"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress,

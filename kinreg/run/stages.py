@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -39,6 +39,7 @@ from kinreg.estimate.drift import (
 from kinreg.estimate.network import Network, link_pair, station_pairs
 from kinreg.estimate.planes import detect_planes
 from kinreg.estimate.reference import to_reference_frame
+from kinreg.estimate.slicing import SensorTrack, sensor_track
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.io.checks import check_inputs
 from kinreg.io.reference_planes import ReferencePlanes
@@ -66,39 +67,47 @@ from kinreg.types import (
 log = logging.getLogger(__name__)
 
 
-def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig]) -> tuple[Station, tuple[Plane, ...]]:
+def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None],
+                ) -> tuple[Station, tuple[Plane, ...]]:
     """One scan's planes and its station (a top-level function: it runs on worker processes).
-    The task carries the sequence's small index (windows, spill paths), never the points."""
-    sequence, i, config = task
+    The task carries the sequence's small index (windows, spill paths) and the sensor's track
+    through the window (:func:`~kinreg.estimate.slicing.sensor_track`, or None), never the points."""
+    sequence, i, config, track = task
     scan = sequence.read_scan(i)
     found = detect_planes(scan, config)
     tau = float("nan")
     if scan.stamps_s is not None:
-        offsets, slopes = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found,
-                                             config.refit_distance_m)
-        found = tuple(p if not np.isfinite(t) else dataclasses.replace(
-                          p, t_offset_s=float(t),
-                          t_slope_s_per_m=(float(g[0]), float(g[1])) if np.all(np.isfinite(g)) else p.t_slope_s_per_m)
-                      for p, t, g in zip(found, offsets, slopes, strict=True))
-        tau = rms_time_offset(offsets)
+        times = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m, track)
+        found = times.applied(found)
+        tau = rms_time_offset(times.offsets)
     station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
                       scan.T_obj_scan, len(scan), tau)
     return station, found
 
 
+def _tasks(sequence: QuasiStaticSequence, indices: Iterable[int], config: PlanesConfig,
+           trajectory: Trajectory | None) -> Iterator[tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None]]:
+    for i in indices:
+        yield sequence, i, config, None if trajectory is None else sensor_track(trajectory, sequence.windows[i])
+
+
 def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progress: Progress,
-                      executor: ExecutorContext | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+                      executor: ExecutorContext | None = None,
+                      trajectory: Trajectory | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
     """Planes of every quasi-static scan, and the stations they belong to (on ``executor``; in this
-    process without one). The result does not depend on the number of workers."""
+    process without one). The result does not depend on the number of workers. With the
+    ``trajectory`` the run was sliced with, each plane also knows where the sensor was while it
+    saw it (:attr:`~kinreg.types.Plane.sensor_xyz`)."""
     progress.start("planes", total=len(sequence), unit="scans")
-    tasks = ((sequence, i, config) for i in range(len(sequence)))
-    results = parallel_map(scan_planes, tasks, executor or in_process(), progress)
+    results = parallel_map(scan_planes, _tasks(sequence, range(len(sequence)), config, trajectory),
+                           executor or in_process(), progress)
     progress.finish()
     return [r[0] for r in results], [r[1] for r in results]
 
 
 def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: Progress,
-                         executor: ExecutorContext, run: RunCache) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+                         executor: ExecutorContext, run: RunCache,
+                         trajectory: Trajectory | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
     """:func:`detect_all_planes` through the stage cache: each scan is looked up under (slice
     key, scan index, ``[planes]``); the others are detected and stored as each finishes, so that
     an interrupted run keeps the scans it finished. The points are read only when a scan is missing."""
@@ -120,7 +129,7 @@ def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: P
     progress.start("planes", total=len(keys), unit="scans")
     progress.advance(len(keys) - len(missing))
     if sequence is not None:
-        parallel_map(scan_planes, ((sequence, i, config) for i in missing), executor, progress, on_result=keep)
+        parallel_map(scan_planes, _tasks(sequence, missing, config, trajectory), executor, progress, on_result=keep)
     progress.finish()
     done = [r for r in results if r is not None]
     return [r[0] for r in done], [r[1] for r in done]
@@ -461,7 +470,7 @@ def detect_run_planes(sliced: Sequence[CachedSlices], trajectories: Sequence[Tra
     planes: list[tuple[Plane, ...]] = []
     moved, jumps = list(trajectories), []
     for k, slices in enumerate(sliced):
-        run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run)
+        run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run, trajectories[k])
         run_stations, moved[k] = to_reference_frame(run_stations, moved[k], references)  # [initial_transform]
         run_stations, run_planes = label_run(run_stations, run_planes, k, len(stations), len(sliced))
         run_stations, run_planes, run_jumps = take_out_jumps(run_stations, run_planes, moved[k], config.jumps)
