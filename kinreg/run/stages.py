@@ -3,7 +3,6 @@ the output folder's stage cache (:mod:`kinreg.run.output_folder`), with progress
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future
@@ -67,8 +66,11 @@ from kinreg.types import (
 log = logging.getLogger(__name__)
 
 
-def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None],
-                ) -> tuple[Station, tuple[Plane, ...]]:
+# A planes task: the sequence's small index, the scan's number, the settings, the sensor's track.
+PlanesTask = tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None]
+
+
+def scan_planes(task: PlanesTask) -> tuple[Station, tuple[Plane, ...]]:
     """One scan's planes and its station (a top-level function: it runs on worker processes).
     The task carries the sequence's small index (windows, spill paths) and the sensor's track
     through the window (:func:`~kinreg.estimate.slicing.sensor_track`, or None), never the points."""
@@ -86,7 +88,7 @@ def scan_planes(task: tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack 
 
 
 def _tasks(sequence: QuasiStaticSequence, indices: Iterable[int], config: PlanesConfig,
-           trajectory: Trajectory | None) -> Iterator[tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None]]:
+           trajectory: Trajectory | None) -> Iterator[PlanesTask]:
     for i in indices:
         yield sequence, i, config, None if trajectory is None else sensor_track(trajectory, sequence.windows[i])
 
