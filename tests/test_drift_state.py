@@ -144,6 +144,25 @@ def test_the_correlation_time_is_measured_from_the_corrections(smooth, expect_lo
         assert tau_pos < DT
 
 
+def test_the_stations_own_noise_does_not_shorten_the_correlation_time():
+    """A drift velocity that turns over minutes, read off stations with 1 mm of noise each (the
+    velocities' noise 1.7 times the drift's): with the noise the adjustment reports taken out of
+    the squares, the correlation stays long; counted as drift, it would read as a few seconds."""
+    from kinreg.estimate.drift import _correlation_times
+
+    n = 200
+    t = DT * np.arange(n)
+    true_v = 3e-4 * np.column_stack([np.cos(t / 300.0), np.sin(t / 300.0), 0.5 + 0 * t])
+    station_noise = np.random.default_rng(5).normal(0.0, 1e-3, (n + 1, 3))
+    v = true_v + np.diff(station_noise, axis=0) / DT
+    ends = [(k, k + 1) for k in range(n)]
+    noise = np.full((n, 3), 2e-6 / DT**2)
+    tau_with, _ = _correlation_times(ends, np.full(n, DT), v, v, noise, noise)
+    tau_without, _ = _correlation_times(ends, np.full(n, DT), v, v)
+    assert tau_with > 100.0
+    assert tau_without < 20.0
+
+
 def test_a_trajectory_link_far_off_its_model_is_named(caplog):
     """The trajectory's links are never rejected; one far beyond its model is named in a warning."""
     import logging

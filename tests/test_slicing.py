@@ -128,3 +128,22 @@ def test_spill_folder_is_removed(tmp_path):
     with slice_run(run, SlicingConfig(min_points=1), tmp_path=work):
         assert any(work.iterdir())
     assert not any(work.iterdir())
+
+
+def test_the_sensor_track_covers_its_window_in_the_scan_frame(tmp_path):
+    """Where the sensor was through a window (for the planes' sensor moments): the trajectory's rows
+    from before its start to after its end, in the scan's frame, whose origin is the sensor at the
+    window's centre time."""
+    from kinreg.estimate.slicing import sensor_track
+    from kinreg.geometry import interpolate_positions
+
+    run = write_synthetic_run(tmp_path / "run", n_points=20_000)
+    with slice_run(run, SlicingConfig(window_s=3.0, min_points=10)) as seq:
+        windows = seq.windows
+    for w in (windows[0], windows[2], windows[-1]):
+        stamps, xyz = sensor_track(run.trajectory, w)
+        assert stamps[0] <= max(w.t_start_s, run.trajectory.t_start_s)
+        assert stamps[-1] >= min(w.t_end_s, run.trajectory.t_end_s)
+        np.testing.assert_allclose(interpolate_positions(stamps, xyz, [w.t_s]), [[0.0, 0.0, 0.0]], atol=1e-9)
+        rows = np.isin(run.trajectory.stamps_s, stamps)
+        np.testing.assert_allclose(w.T_obj_scan.apply(xyz), run.trajectory.poses.t_xyz[rows], atol=1e-9)

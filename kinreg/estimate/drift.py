@@ -569,7 +569,8 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     rot_rate = _rms_rate(np.array(rot_v), np.array(rot_noise))
     correlation = prior.correlation_s
     if measure_correlation:
-        correlation = _correlation_times(ends, np.array(dts), pos_v, np.array(rot_v))
+        correlation = _correlation_times(ends, np.array(dts), pos_v, np.array(rot_v), np.array(pos_noise),
+                                         np.array(rot_noise))
     return DriftRates(np.maximum(floor_share * prior.pos_m_per_s, pos_rate),
                       np.maximum(floor_share * prior.rot_rad_per_s, rot_rate),
                       prior.pos_floor_m, prior.rot_floor_rad, estimated=True, coupling=kappa,
@@ -640,14 +641,17 @@ def coupling_from_links(stations: Sequence[Station], links: Sequence[Link], resu
 
 
 def _correlation_times(ends: list[tuple[int, int]], dts: np.ndarray, pos_v: np.ndarray,
-                       rot_v: np.ndarray) -> tuple[float, float]:
+                       rot_v: np.ndarray, pos_noise: np.ndarray | None = None,
+                       rot_noise: np.ndarray | None = None) -> tuple[float, float]:
     """Correlation times (position, rotation) [s] of the drift velocity, from the correlation of
     the velocities of links two apart in a chain of consecutive links:
-    ``rho = sum v_k v_k+2 / sum (v_k^2 + v_k+2^2) / 2`` and ``tau = -lag / ln rho`` (0 where
-    rho <= 0), at most the run's length. Two apart, because links one apart share a station whose
-    own noise correlates them negatively; the noise in the squares shortens ``tau`` (the
-    cautious side). Stretches whose corrections show no drift (no plane fixes them) add to neither
-    sum."""
+    ``rho = sum v_k v_k+2 / sum ((v_k^2 + v_k+2^2) / 2 - noise)`` and ``tau = -lag / ln rho`` (0
+    where rho <= 0), at most the run's length. Two apart, because links one apart share a station
+    whose own noise correlates them negatively; links two apart share none, so their products hold
+    no noise, while the squares hold the adjustment's own noise in the velocities (``pos_noise``,
+    ``rot_noise``: per link and axis, as :func:`_rms_rate` takes them), taken out, or a smooth drift
+    measured from noisy stations would read as decorrelated. Stretches whose corrections show no
+    drift (no plane fixes them) add to neither sum."""
     follows = np.array([ends[k + 1][0] == ends[k][1] for k in range(len(ends) - 1)], dtype=bool)
     k = np.flatnonzero(follows[:-1] & follows[1:]) if len(follows) > 1 else np.zeros(0, dtype=int)
     if not len(k):
@@ -655,10 +659,12 @@ def _correlation_times(ends: list[tuple[int, int]], dts: np.ndarray, pos_v: np.n
     span = float(np.sum(dts))
     lag = float(np.median(dts[k] + 2.0 * dts[k + 1] + dts[k + 2]) / 2.0)  # centre to centre
     out = []
-    for v in (pos_v, rot_v):
+    for v, noise in ((pos_v, pos_noise), (rot_v, rot_noise)):
         products = v[k] * v[k + 2]
         energy = 0.5 * (v[k] ** 2 + v[k + 2] ** 2)
-        total = float(np.sum(energy))
+        if noise is not None:
+            energy = energy - 0.5 * (noise[k] + noise[k + 2])
+        total = max(float(np.sum(energy)), float(np.sum(products)))  # rho <= 1
         rho = float(np.sum(products) / total) if total > 0.0 else 0.0
         tau = float(-lag / np.log(rho)) if 0.0 < rho < 1.0 else (0.0 if rho <= 0.0 else np.inf)
         out.append(min(tau, span))  # the run cannot show a correlation longer than itself

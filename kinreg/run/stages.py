@@ -235,9 +235,10 @@ def adjust_with_measured_drift(
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
                                  config.drift.measure_correlation, network.links)
-    # The correlation of the drift is measured once, on the first adjustment, whose links are
-    # independent: an adjustment that already carries a smooth drift through the stretches no
-    # plane fixes would find it smooth there because it made it so.
+    # The correlation of the drift is measured on the first adjustment, whose links are
+    # independent (an adjustment that already carries a smooth drift through the stretches no
+    # plane fixes would find it smooth there because it made it so), and once more on the first
+    # round's deskewed planes (:func:`_correlation_of_deskewed`).
     correlation = rates.correlation_s
     linked_with = prior_rates
     tried: list[tuple[float, float]] = []  # (coupling deskewed and adjusted with, coupling it measured)
@@ -262,6 +263,9 @@ def adjust_with_measured_drift(
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
         network = replace(network.with_links(links), velocity_cov=velocity_cov)
+        if round_ == 0 and sheared and config.drift.measure_correlation:
+            correlation = _correlation_of_deskewed(network, result, rates, prior_rates, config, progress)
+            rates = replace(rates, correlation_s=correlation)
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
         used = rates.coupling
         rates = replace(estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
@@ -279,6 +283,24 @@ def adjust_with_measured_drift(
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
     return AdjustedNetwork(network, result, rates)
+
+
+def _correlation_of_deskewed(network: Network, result: BlockResult, rates: DriftRates, prior: DriftRates,
+                             config: KinregConfig, progress: Progress) -> tuple[float, float]:
+    """The drift velocity's correlation times, measured again once the planes are deskewed (the
+    first relink round), on an adjustment whose trajectory links are independent (as the first
+    one's: a smooth drift carried through stretches no plane fixes would read as smooth because
+    the adjustment made it so). The first adjustment's planes carry the drift inside their windows:
+    under GNSS/INS-like drift they are sheared by the attitude error, the stations' corrections
+    err by millimetres from one station to the next, and a position drift whose velocity keeps
+    its direction for minutes read as decorrelated within 0-18 s."""
+    independent = _checked(adjust_network(network, replace(rates, correlation_s=(0.0, 0.0)), config.block,
+                                          progress, previous=result))
+    measured = estimate_drift_rates(network.stations, independent, prior, config.drift.measured_rate_floor,
+                                    measure_correlation=True, links=network.links)
+    log.info("drift velocity correlation on the deskewed planes: %.0f s (position), %.0f s (rotation); "
+             "on the first adjustment %.0f s, %.0f s", *measured.correlation_s, *rates.correlation_s)
+    return measured.correlation_s
 
 
 # The coupling is settled when the next round would deskew with one this close to the last; until it
