@@ -373,25 +373,26 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             if not keep.any():
                 continue
             t = stamps_s[idx[keep]]
-            offsets[k] = float(np.mean(t)) - t_s
             s, v = (a[keep] for a in along)
             s -= s.mean()
             v -= v.mean()
             # numpy's sums, not BLAS's dot: the same bits for any number of BLAS threads.
             sv = np.sum(s * v)
             A = np.array([[np.sum(s * s), sv], [sv, np.sum(v * v)]])
-            solvable = len(t) >= 3 and np.linalg.cond(A) < 1e8
-            if solvable:
-                dt = t - t.mean()
-                slopes[k] = np.linalg.solve(A, np.array([np.sum(s * dt), np.sum(v * dt)]))
+            # Rows: the time, and with a track the sensor's position at it (np.interp per axis: the
+            # same values as interpolate_positions, a fifth of its time).
+            seen = [t] if track is None else [t] + [np.interp(t, track[0], track[1][:, i]) for i in range(3)]
+            means = np.array([np.mean(row) for row in seen])
+            offsets[k] = float(means[0]) - t_s
             if track is not None:
-                # np.interp per axis: the same values as interpolate_positions, a fifth of its time
-                where = np.column_stack([np.interp(t, track[0], track[1][:, i]) for i in range(3)])
-                sensor[k] = np.mean(where, axis=0)
-                if solvable:
-                    where -= sensor[k]
-                    sensor_slopes[k] = np.linalg.solve(A, np.array([np.sum(s[:, None] * where, axis=0),
-                                                                    np.sum(v[:, None] * where, axis=0)])).T
+                sensor[k] = means[1:]
+            if len(t) >= 3 and np.linalg.cond(A) < 1e8:
+                # their slopes across the plane: one least-squares fit for all rows
+                y = np.array(seen) - means[:, None]
+                g = np.linalg.solve(A, np.array([np.sum(y * s, axis=1), np.sum(y * v, axis=1)]))
+                slopes[k] = g[:, 0]
+                if track is not None:
+                    sensor_slopes[k] = g[:, 1:].T
     return PlaneTimes(offsets, slopes, sensor, sensor_slopes)
 
 

@@ -98,8 +98,7 @@ def sensor_track(trajectory: Trajectory, window: ScanWindow) -> SensorTrack:
     a = max(int(np.searchsorted(stamps, window.t_start_s, side="right")) - 1, 0)
     b = min(int(np.searchsorted(stamps, window.t_end_s, side="left")) + 1, len(stamps) - 1)
     rows = slice(a, b + 1)
-    local = window.T_obj_scan.apply_inverse(trajectory.poses.t_xyz[rows])
-    return stamps[rows].copy(), np.asarray(local, dtype=np.float64)
+    return stamps[rows], window.T_obj_scan.apply_inverse(trajectory.poses.t_xyz[rows])
 
 
 def window_smear_m(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], rates: DriftRates) -> FloatArray:
