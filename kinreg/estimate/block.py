@@ -29,7 +29,6 @@ from collections.abc import Iterator
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import stats
 
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
@@ -437,6 +436,7 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
 
     sigma0 = float(np.sqrt(omega / redundancy)) if redundancy > 0 else float("nan")
     failure = _failure(converged, iterations, poses, omega, redundancy, Qxx_blocks)
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     passed = not failure and bool(redundancy <= 0 or omega <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
     factor_scale = sigma0**2 if (not passed and np.isfinite(sigma0)) else 1.0
     cov_xi = np.zeros((n, 6, 6))

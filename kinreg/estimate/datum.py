@@ -9,7 +9,6 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats
 
 from kinreg.config import BlockConfig, Disconnected, DiscontinuityConfig, KinregConfig, StaticConfig, StaticDatum
 from kinreg.errors import ConfigError, EstimationError
@@ -246,6 +245,7 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
         return network
     plain = dataclasses.replace(config, variance_components=False, data_snooping=False)
     held_elsewhere = bool(network.datum.fixed.any() or network.datum.observations)
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     critical = float(stats.chi2.ppf(1.0 - config.alpha, 3))
     rejected: list[tuple[str, float]] = []
     while len(rejected) < config.max_rejections:

@@ -27,7 +27,6 @@ import logging
 import math
 
 import numpy as np
-from scipy import stats
 
 from kinreg.config import DriftConfig, PairwiseConfig
 from kinreg.estimate.drift import drift_sigmas
@@ -102,6 +101,7 @@ class _Design:
 @functools.lru_cache(maxsize=256)
 def _chi2_quantile(p: float, dof: int) -> float:
     """``stats.chi2.ppf(p, dof)``, once per (p, dof): scipy's call costs more than a small pair's solve."""
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     return float(stats.chi2.ppf(p, dof))
 
 

@@ -8,7 +8,6 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats
 
 from kinreg.estimate.sparse import SparseFactor, in_threads, selected_inverse
 from kinreg.geometry import FloatArray
@@ -188,6 +187,7 @@ def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float
     alone determines some direction (its redundancy there below ``_MIN_DIRECTION_REDUNDANCY``) is
     never rejected: without it the network would be undetermined in that direction (a stretch
     whose planes leave it free, carried by the trajectory alone)."""
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     dofs = np.unique(tests.dof[candidates])
     critical = np.full(len(tests), np.inf)
     for dof in dofs.tolist():
@@ -219,6 +219,7 @@ def variance_components(tests: ObservationTests | Sequence[ObservationTest], wei
     (``(e^T P e)_g > chi2(1 - alpha, r_g)``).
     Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
     """
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     if not isinstance(tests, ObservationTests):
         tests = ObservationTests.from_tests(tests)
     new = dict(weights)

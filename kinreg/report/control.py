@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from kinreg.estimate.control import Assignment, static_station_index
 from kinreg.estimate.correction import DriftCorrection
@@ -135,6 +134,7 @@ def control_section(network: Network, result: BlockResult, rates: DriftRates, as
                     reference_point_m: FloatArray, alpha: float) -> dict[str, Any]:
     """``report.json`` ``control``: one row per control point used (stand-still points, then targets
     in static scans), and the points left out."""
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     ties = {t.name: (k, t) for k, t in enumerate(network.datum.controls)}
     screened = dict(network.datum.rejected_controls)
     indices = network.control_indices(rates)

@@ -10,7 +10,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from kinreg.config import (
     DriftConfig,
@@ -333,6 +332,7 @@ def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
     links = [t for t in result.tests if t.kind is ObservationKind.TRAJECTORY and np.isfinite(t.statistic)]
     if not links:
         return
+    from scipy import stats  # lazily: ~0.7 CPU s to import, in every worker process
     critical = {dof: stats.chi2.ppf(1.0 - alpha / len(links), dof) for dof in {t.dof for t in links}}
     bad = sorted((t for t in links if t.statistic > critical[t.dof]), key=lambda t: -t.statistic / critical[t.dof])
     if bad:
