@@ -17,10 +17,10 @@ One thread per local worker: N workers already keep N cores busy, so each worker
 otherwise every worker would start a pool per core and they would fight over the cores. The
 variables must be set before a worker loads those libraries, so they are set in the forkserver
 itself (its first preloaded module is :mod:`kinreg.run._worker_threads`, before the tasks' module
-:mod:`kinreg.run.stages` loads numpy; ``__main__`` is not preloaded), and again in each worker's initialiser, which also limits pools already loaded
-when ``threadpoolctl`` is installed. The calling process is left as it is: in-process runs
-(``workers=1``) keep every BLAS thread. Dask workers are configured by their cluster (Dask's
-nanny already sets these variables to 1).
+:mod:`kinreg.run.stages` loads numpy; ``__main__`` is not preloaded), and again in each
+worker's initialiser, which also limits pools already loaded when ``threadpoolctl`` is installed.
+The calling process is left as it is: in-process runs (``workers=1``) keep every BLAS thread.
+Dask workers are configured by their cluster (Dask's nanny already sets these variables to 1).
 
 The functions given to :func:`parallel_map` must be importable top-level functions of a module
 (not lambdas, closures or functions defined in ``__main__`` of a script run by a worker), and
