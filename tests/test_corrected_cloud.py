@@ -44,3 +44,41 @@ def test_chunked_overlapped_writer_gives_every_point_its_correction(tmp_path, su
     assert np.abs(np.column_stack([out.x, out.y, out.z]) - expected).max() <= 0.5e-4 + 1e-6
     assert np.array_equal(out.gps_time, stored.gps_time)  # same order
     assert np.array_equal(out.intensity, stored.intensity)
+
+
+def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
+    """The raw-integer path of a chunk (coordinates from X * scale + offset, back by rounding) gives
+    exactly the integers of laspy's scaled views (``points.x = ...``) with the same correction, and
+    the same overflow error."""
+    from kinreg.errors import CloudError
+    from kinreg.run.corrected_cloud import _corrected
+
+    rng = np.random.default_rng(4)
+    traj = make_trajectory(30.0, offset=(500_000.0, 5_400_000.0, 300.0))
+    ts = np.linspace(traj.t_start_s + 1.0, traj.t_end_s - 1.0, 6)
+    initial = traj.pose_at(ts)
+    adjusted = initial.compose(Pose(rotvec_to_quat(rng.normal(0, 0.003, (6, 3))), rng.normal(0, 0.03, (6, 3))))
+    correction = DriftCorrection.from_stations(ts, initial, adjusted, traj)
+    n = 150_000  # more than one block of the rounding
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = np.array([1e-4, 1e-4, 1e-3]), np.array([500_000.0, 5_400_000.0, 300.0])
+    rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+    t = rng.uniform(traj.t_start_s, traj.t_end_s, n)
+    xyz = traj.pose_at(t).t_xyz + rng.normal(0, 5.0, (n, 3))
+    rec.x, rec.y, rec.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    rec.gps_time = t
+    expected = laspy.ScaleAwarePointRecord(rec.array.copy(), rec.point_format, rec.scales, rec.offsets)
+    fixed = correction.apply_to_points(np.column_stack([expected.x, expected.y, expected.z]), t)
+    expected.x, expected.y, expected.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
+
+    before = rec.array["X"].copy()
+    got = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
+    for dim in "XYZ":
+        assert np.array_equal(got.array[dim], expected.array[dim])
+    assert np.abs(got.array["X"] - before).max() > 10  # the correction moved the points (> 1 mm)
+
+    far = DriftCorrection.from_stations(ts, initial, initial.compose(Pose(initial.quat_wxyz * 0 + [1, 0, 0, 0],
+                                                                         np.full((6, 3), 1e6))), traj)
+    with pytest.raises(CloudError, match="does not fit"):
+        _corrected(laspy.ScaleAwarePointRecord(rec.array.copy(), rec.point_format, rec.scales, rec.offsets),
+                   far, header, tmp_path / "in.laz", None, 0.0, None)

@@ -73,3 +73,40 @@ def test_a_hull_moved_by_rounding_keeps_its_vertex_points():
         moved = replace(p, hull_xyz=p.hull_xyz + shift * (p.hull_xyz - p.centroid_xyz))
         offsets = plane_time_offsets(points, stamps, 0.0, [moved], 0.03).offsets
         assert offsets[0] == np.mean(stamps)
+
+
+def test_sensor_moments_equal_those_of_the_points_of_a_float64_pass():
+    """With the sensor's track: each plane's mean sensor position is the mean of the track at its
+    points' times (those of the float64 pass), and its slope across the plane that of a least-squares
+    fit of those positions against the in-plane coordinates."""
+    rng = np.random.default_rng(11)
+    planes, chunks = [], []
+    for k, n in enumerate([(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 1.0, 0.0)]):
+        n = np.asarray(n) / np.linalg.norm(n)
+        d = -(3.0 + k)
+        planes.append(plane_in_scan(n, d, d * n, (2.0, 1.5), Pose.identity(), 0, k, 1e-4, 3e-4, None))
+        st = rng.uniform(-2.5, 2.5, (15_000, 2))
+        chunks.append(planes[-1].centroid_xyz + st @ planes[-1].basis_uv + rng.normal(0, 0.02, (15_000, 1))
+                      * planes[-1].normal)
+    points = np.concatenate([*chunks, rng.uniform(-8, 8, (20_000, 3))])
+    stamps = 100.0 + rng.uniform(-3.0, 3.0, len(points))
+    track_t = np.linspace(96.0, 104.0, 81)
+    track = (track_t, np.column_stack([0.5 * (track_t - 100), np.sin(track_t), 0.1 * track_t]))
+    times = plane_time_offsets(points, stamps, 100.0, planes, 0.03, track)
+    want_offsets, _ = _one_pass(points, stamps, 100.0, planes, 0.03)
+    assert np.array_equal(times.offsets, want_offsets)
+    for k, plane in enumerate(planes):
+        near = np.abs(points @ plane.normal - plane.d_m) <= 0.03
+        local = points[near] - plane.centroid_xyz
+        hull = plane.hull_xyz - plane.centroid_xyz
+        inside = np.ones(len(local), dtype=bool)
+        for axis in plane.basis_uv:
+            inside &= (local @ axis >= (hull @ axis).min() - 1e-9) & (local @ axis <= (hull @ axis).max() + 1e-9)
+        t = stamps[near][inside]
+        seen = np.column_stack([np.interp(t, track_t, track[1][:, i]) for i in range(3)])
+        np.testing.assert_allclose(times.sensor[k], seen.mean(axis=0), rtol=0, atol=1e-12)
+        st = local[inside] @ plane.basis_uv.T
+        st = st - st.mean(axis=0)
+        slope = np.linalg.solve(st.T @ st, st.T @ (seen - seen.mean(axis=0)))  # (2, 3)
+        np.testing.assert_allclose(times.sensor_slopes[k], slope.T, rtol=0, atol=1e-12)
+        assert np.abs(times.sensor_slopes[k]).max() > 1e-3  # the sensor moved while the plane was seen

@@ -350,3 +350,53 @@ def test_crs_named_by_pyproj_where_present(monkeypatch):
     assert describe_crs(LasCrs(geo_keys={3072: 32632}))["name"] == "EPSG 32632 by PROJ"
     broken = describe_crs(LasCrs(wkt='PROJCS["broken",AUTHORITY["EPSG","1234"]]'))
     assert (broken["name"], broken["epsg"], broken["resolved_by"]) == ("broken", 1234, "text")
+
+
+def _rasters_by_masks(views: CloudViews, before: np.ndarray, after: np.ndarray, times: np.ndarray) -> dict:
+    """The rasters as first written: boolean masks on the (n, 3) arrays, per block of the views."""
+    from kinreg.report.cloud_views import BLOCK_POINTS
+    from kinreg.report.sections import CorrectionMap, SectionRaster
+
+    half = 0.5 * views.config.section_band_m
+    out: dict = {"correction": CorrectionMap(views.grid)}
+    time01 = ((times - views.t0_s) / views.duration_s).astype(np.float32)
+    for a in range(0, len(times), BLOCK_POINTS):
+        xb, xa, tb = before[a:a + BLOCK_POINTS], after[a:a + BLOCK_POINTS], time01[a:a + BLOCK_POINTS]
+        for which, xyz in (("before", xb), ("after", xa)):
+            for k, z in enumerate(views.heights or []):
+                band = np.abs(xyz[:, 2] - z) <= half
+                out.setdefault((z, which), SectionRaster(views.grid)).add(xyz[band, :2], tb[band])
+                if k == 0 and which == "after":
+                    shift = xa[band, :2] - xb[band, :2]
+                    out["correction"].add(xa[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
+            plane = views.vertical
+            u = (plane.end_xy - plane.start_xy) / plane.length_m
+            x, y = xyz[:, 0] - plane.start_xy[0], xyz[:, 1] - plane.start_xy[1]
+            inside = np.abs(x * u[1] - y * u[0]) <= 0.5 * plane.band_m
+            along = x[inside] * u[0] + y[inside] * u[1]
+            out.setdefault(("vertical", which), SectionRaster(views.vertical_grid)).add(
+                np.column_stack([along, xyz[inside, 2]]), tb[inside])
+    return out
+
+
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_section_rasters_are_those_of_boolean_masks_per_point(order):
+    """Gathering the band's points by index, column by column, fills the same pixels with the same
+    sums (to the bit) as masking the (n, 3) arrays: the figures do not change."""
+    from kinreg.report.sections import VerticalPlane
+
+    before, after, times = drifted_pass(np.random.default_rng(8), 0.05, origin=UTM)
+    before, after = np.asarray(before, order=order), np.asarray(after, order=order)
+    start = UTM[:2] + [-0.5, 3.4]
+    views = CloudViews(ReportConfig(section_heights_m=(1.5 + UTM[2], 0.8 + UTM[2])),
+                       np.minimum(before.min(0), after.min(0)), np.maximum(before.max(0), after.max(0)), 0.0, 150.0,
+                       vertical=VerticalPlane(start, start + [11.5, 0.0], 0.1))
+    views.add(before, after, times)  # one chunk: two blocks of the rasters
+    want = _rasters_by_masks(views, before, after, times)
+    for key, raster in [*views.rasters.items(), *((("vertical", w), r) for w, r in views.vertical_rasters.items())]:
+        assert raster.n_points > 1000
+        assert np.array_equal(raster.count, want[key].count)
+        assert np.array_equal(raster.time_sum, want[key].time_sum)
+    assert np.array_equal(views.corrections.count, want["correction"].count)
+    assert np.array_equal(views.corrections.shift_sum, want["correction"].shift_sum)
+    assert views.corrections.count.sum() > 1000

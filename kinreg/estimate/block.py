@@ -29,13 +29,13 @@ from collections.abc import Iterator
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import stats
 
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
 from kinreg.estimate.normal import NormalEquations
 from kinreg.estimate.snooping import (
     ObservationTests,
+    chi2_quantile,
     observation_tests,
     taken_back,
     variance_components,
@@ -437,7 +437,7 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
 
     sigma0 = float(np.sqrt(omega / redundancy)) if redundancy > 0 else float("nan")
     failure = _failure(converged, iterations, poses, omega, redundancy, Qxx_blocks)
-    passed = not failure and bool(redundancy <= 0 or omega <= stats.chi2.ppf(1.0 - config.alpha, redundancy))
+    passed = not failure and bool(redundancy <= 0 or omega <= chi2_quantile(1.0 - config.alpha, float(redundancy)))
     factor_scale = sigma0**2 if (not passed and np.isfinite(sigma0)) else 1.0
     cov_xi = np.zeros((n, 6, 6))
     cov_xi[~fixed] = Qxx_blocks * factor_scale

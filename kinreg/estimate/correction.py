@@ -32,6 +32,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.interpolate import CubicSpline
 
 from kinreg.estimate.jumps import jump_arrays, jump_removal
@@ -48,8 +49,22 @@ from kinreg.types import Trajectory, TrajectoryJump
 
 # Grid of the correction for points [s] (:meth:`DriftCorrection.apply_to_points`).
 POINT_GRID_S = 0.01
-# Points per block of the interpolation (its temporaries, 15 values a point, stay in the cache).
-_POINT_BLOCK = 1 << 13
+# Points per block of the interpolation (its temporaries, 31 node values a point, stay in the cache).
+_POINT_BLOCK = 1 << 14
+
+
+def _interval_runs(grid: FloatArray, t: FloatArray) -> NDArray[np.int64] | None:
+    """For time-sorted ``t`` (n,), where each interval of ``grid`` (its interpolation's, clipped to
+    the first and last) starts: ``runs[j]`` is the first point in interval ``j``, ``runs[-1] = n``,
+    so that the points ``runs[j]:runs[j + 1]`` are those ``searchsorted(grid, t, "right") - 1``
+    (clipped) puts there. ``None`` for unsorted times (a LAS file is usually in time order; then
+    a block's node values are repeats of a few intervals' instead of a gather per point)."""
+    if len(t) > 1 and not bool(np.all(t[1:] >= t[:-1])):
+        return None
+    runs = np.empty(len(grid), dtype=np.int64)
+    runs[0], runs[-1] = 0, len(t)
+    runs[1:-1] = np.searchsorted(t, grid[1:-1], side="left")  # the points at or after each inner node
+    return runs
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,7 +151,12 @@ class DriftCorrection:
         :data:`POINT_GRID_S` and interpolated linearly to each point's time: the correction changes
         over seconds, so this is within 0.01 mm (a few micrometres) of evaluating it at every point (the pivot's error
         enters multiplied by the correction's small angle), at a fraction of the cost (no spline
-        and no rotation matrix per point)."""
+        and no rotation matrix per point).
+
+        The result is in column-major (Fortran) order, its three columns contiguous: that is how it
+        is computed, and what the callers read (a column per coordinate of a LAS record). ``xyz``
+        is read by columns too; one in that order (``rows.T`` of coordinate rows (3, n)) is read
+        without gathering strided values."""
         if self.jump_steps is not None:
             xyz = self.without_jumps(stamps_s).apply(xyz)
         t = np.asarray(stamps_s, dtype=np.float64)
@@ -151,21 +171,42 @@ class DriftCorrection:
         origin = pivot[0]  # interpolated relative to it: UTM-sized values keep their precision
         # np.interp's formula (value at the node below plus slope times the time since it), for
         # the 15 values at once and in blocks that stay in the cache: no per-column search, no
-        # (n, 3, 3) matrices.
+        # (n, 3, 3) matrices. Everything in rows (a row per value, a column per point): each
+        # product below runs over contiguous memory (the same operations, in the same order, as
+        # on (n, 15) arrays: the same bits).
         table = np.hstack([A.reshape(-1, 9), delta, pivot - origin])
         slope = np.diff(table, axis=0) / np.diff(grid)[:, None]
-        out = np.empty((len(t), 3))
+        # (31, len(grid) - 1): per interval the values at the node below, the slopes, the node's time
+        nodes_rows = np.ascontiguousarray(np.hstack([table[:-1], slope, grid[:-1, None]]).T)
+        x_rows = [xyz[:, i] for i in range(3)]
+        out = np.empty((3, len(t)))
+        runs = _interval_runs(grid, t)
         for a in range(0, len(t), _POINT_BLOCK):
-            tb, x = t[a:a + _POINT_BLOCK], xyz[a:a + _POINT_BLOCK]
-            k = np.clip(np.searchsorted(grid, tb, side="right") - 1, 0, len(grid) - 2)
-            v = table[k] + (tb - grid[k])[:, None] * slope[k]
-            d = x - (v[:, 12:15] + origin)
-            o = out[a:a + len(tb)]
+            tb = t[a:a + _POINT_BLOCK]
+            x = [c[a:a + _POINT_BLOCK] for c in x_rows]
+            if runs is not None:  # time-sorted points: each interval's values repeated over its run
+                first, last = np.searchsorted(runs, [a, a + len(tb)], side="right") - 1
+                edges = np.clip(runs[first:last + 2], a, a + len(tb))
+                g = np.repeat(nodes_rows[:, first:first + len(edges) - 1], np.diff(edges), axis=1)
+            else:
+                k = np.searchsorted(grid, tb, side="right")
+                k -= 1
+                np.clip(k, 0, len(grid) - 2, out=k)
+                g = nodes_rows.take(k, axis=1)
+            dt = tb - g[30]
+            v = g[15:30]
+            v *= dt
+            v += g[:15]
+            d = [x[i] - (v[12 + i] + origin[i]) for i in range(3)]
+            o = out[:, a:a + len(tb)]
             for i in range(3):
-                o[:, i] = v[:, 3 * i] * d[:, 0] + v[:, 3 * i + 1] * d[:, 1] + v[:, 3 * i + 2] * d[:, 2]
-            o += x
-            o += v[:, 9:12]
-        return out
+                row = o[i]
+                np.multiply(v[3 * i], d[0], out=row)
+                row += v[3 * i + 1] * d[1]
+                row += v[3 * i + 2] * d[2]
+                row += x[i]
+                row += v[9 + i]
+        return out.T
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""

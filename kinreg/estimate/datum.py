@@ -9,7 +9,6 @@ import logging
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats
 
 from kinreg.config import BlockConfig, Disconnected, DiscontinuityConfig, KinregConfig, StaticConfig, StaticDatum
 from kinreg.errors import ConfigError, EstimationError
@@ -26,6 +25,7 @@ from kinreg.estimate.frames import adjust_with_frames, window_gain
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
 from kinreg.estimate.reference import associate, tie_observations
+from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import Pose, pose_sigmas, skew
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.progress import Progress
@@ -246,7 +246,7 @@ def screen_control_points(network: Network, rates: DriftRates, config: BlockConf
         return network
     plain = dataclasses.replace(config, variance_components=False, data_snooping=False)
     held_elsewhere = bool(network.datum.fixed.any() or network.datum.observations)
-    critical = float(stats.chi2.ppf(1.0 - config.alpha, 3))
+    critical = chi2_quantile(1.0 - config.alpha, 3)
     rejected: list[tuple[str, float]] = []
     while len(rejected) < config.max_rejections:
         controls = network.datum.controls

@@ -357,22 +357,25 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
                 cand = everything
             # The float64 tests on the candidates' rows: a matrix-vector product gives each row the
             # bits of a pass over every point, so a point on the band's edge, or a hull vertex on
-            # the extent's, falls on the same side as there.
-            sub = points_xyz[cand]
-            near = np.abs(sub @ plane.normal - plane.d_m) <= band_m
-            idx = cand[near]
-            local = sub[near] - plane.centroid_xyz
+            # the extent's, falls on the same side as there. The rows are not compressed by the
+            # band test (nearly every candidate passes it): it joins the extent's test, and the
+            # centroid is taken off column by column (an (n, 3) array minus a 3-vector runs an
+            # inner loop of three per point).
+            local = points_xyz.take(cand, axis=0)
+            keep = np.abs(local @ plane.normal - plane.d_m) <= band_m
+            for i in range(3):
+                local[:, i] -= plane.centroid_xyz[i]
             hull = plane.hull_xyz - plane.centroid_xyz
-            keep = np.ones(len(idx), dtype=bool)
             along = []
             for axis in plane.basis_uv:
                 a = local @ axis
                 h = hull @ axis
-                keep &= (a >= h.min() - _EXTENT_MARGIN_M) & (a <= h.max() + _EXTENT_MARGIN_M)
+                keep &= a >= h.min() - _EXTENT_MARGIN_M
+                keep &= a <= h.max() + _EXTENT_MARGIN_M
                 along.append(a)
             if not keep.any():
                 continue
-            t = stamps_s[idx[keep]]
+            t = stamps_s[cand[keep]]
             s, v = (a[keep] for a in along)
             s -= s.mean()
             v -= v.mean()
@@ -381,15 +384,19 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             A = np.array([[np.sum(s * s), sv], [sv, np.sum(v * v)]])
             # Rows: the time, and with a track the sensor's position at it (np.interp per axis: the
             # same values as interpolate_positions, a fifth of its time).
-            seen = [t] if track is None else [t] + [np.interp(t, track[0], track[1][:, i]) for i in range(3)]
+            seen = np.empty((1 if track is None else 4, len(t)))
+            seen[0] = t
+            if track is not None:
+                for i in range(3):
+                    seen[1 + i] = np.interp(t, track[0], track[1][:, i])
             means = np.array([np.mean(row) for row in seen])
             offsets[k] = float(means[0]) - t_s
             if track is not None:
                 sensor[k] = means[1:]
             if len(t) >= 3 and np.linalg.cond(A) < 1e8:
                 # their slopes across the plane: one least-squares fit for all rows
-                y = np.array(seen) - means[:, None]
-                g = np.linalg.solve(A, np.array([np.sum(y * s, axis=1), np.sum(y * v, axis=1)]))
+                seen -= means[:, None]
+                g = np.linalg.solve(A, np.array([np.sum(seen * s, axis=1), np.sum(seen * v, axis=1)]))
                 slopes[k] = g[:, 0]
                 if track is not None:
                     sensor_slopes[k] = g[:, 1:].T

@@ -22,16 +22,15 @@ instead of once per link.
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 
 import numpy as np
-from scipy import stats
 
 from kinreg.config import DriftConfig, PairwiseConfig
 from kinreg.estimate.drift import drift_sigmas
 from kinreg.estimate.matching import count_directions
+from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, skew
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch
 
@@ -97,12 +96,6 @@ class _Design:
         block[:, 2, 2] = 1.0
         B[self.B_j_index] = block
         return w.reshape(-1), A.reshape(-1, 6), B
-
-
-@functools.lru_cache(maxsize=256)
-def _chi2_quantile(p: float, dof: int) -> float:
-    """``stats.chi2.ppf(p, dof)``, once per (p, dof): scipy's call costs more than a small pair's solve."""
-    return float(stats.chi2.ppf(p, dof))
 
 
 def _pinv_symmetric(Q: FloatArray) -> FloatArray:
@@ -241,7 +234,7 @@ def adjust_pair(
     while active:
         sol = _solve(_Design(by_id_i, by_id_j, active), T_prior, P_prior, config.max_iterations)
         test, normalised = _match_statistics(sol, len(active))
-        critical = _chi2_quantile(1.0 - config.alpha, 3)
+        critical = chi2_quantile(1.0 - config.alpha, 3)
         worst = int(np.argmax(test))
         if test[worst] <= critical or len(rejected) >= max_rejected:
             break
@@ -257,7 +250,7 @@ def adjust_pair(
 
     redundancy = 3 * len(active)
     sigma0 = float(np.sqrt(sol["omega"] / redundancy))
-    passed = bool(sol["omega"] <= _chi2_quantile(1.0 - config.alpha, redundancy))
+    passed = bool(sol["omega"] <= chi2_quantile(1.0 - config.alpha, redundancy))
     T_planes, N_p, rank, axis_sigma = _plane_only(sol)
     R_i = np.array([by_id_i[m.plane_i].normal for m in active])
     # A failed global test alone is reported, not fatal (it happens at rate alpha by chance); a link

@@ -5,10 +5,10 @@ observation kind."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats
 
 from kinreg.estimate.sparse import SparseFactor, in_threads, selected_inverse
 from kinreg.geometry import FloatArray
@@ -180,6 +180,16 @@ def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], o
     return statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted
 
 
+@functools.lru_cache(maxsize=1024)
+def chi2_quantile(p: float, dof: float) -> float:
+    """``scipy.stats.chi2.ppf(p, dof)``, once per (p, dof). scipy.stats is imported here, when a
+    quantile is first needed: it costs about 0.7 CPU s, which the plane workers (that never test
+    anything) would otherwise pay each; and scipy's call costs more than a small pair's solve."""
+    from scipy import stats
+
+    return float(stats.chi2.ppf(p, dof))
+
+
 def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
     """Positions in ``tests`` of the observations to reject in one round, worst first, among the
     ``candidates`` (bool, k): those above the critical value that are the worst among all such
@@ -192,7 +202,7 @@ def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float
     critical = np.full(len(tests), np.inf)
     for dof in dofs.tolist():
         at = tests.dof == dof
-        critical[at] = stats.chi2.ppf(1.0 - alpha, dof)
+        critical[at] = chi2_quantile(1.0 - alpha, dof)
     with np.errstate(invalid="ignore"):
         bad = (candidates & np.isfinite(tests.statistic) & (tests.redundancy > 0.05) & (tests.statistic > critical)
                & ~(tests.min_redundancy < _MIN_DIRECTION_REDUNDANCY))
@@ -235,7 +245,7 @@ def variance_components(tests: ObservationTests | Sequence[ObservationTest], wei
         # widely (r = 6, four control points: chi-square/6 exceeds 1 in 42% of draws of a right
         # model), so inflating on every estimate above 1 inflates on average. A group inflated too
         # far in an earlier round (by another group's misfit) goes back towards its a-priori weight.
-        if omega > r and omega <= stats.chi2.ppf(1.0 - alpha, r):
+        if omega > r and omega <= chi2_quantile(1.0 - alpha, r):
             continue
         new[kind] = min(1.0, weights[kind] / max(omega / r, 1e-6))
     return new

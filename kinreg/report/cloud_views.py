@@ -144,14 +144,18 @@ class CloudViews:
         for which, xyz in (("before", xyz_before), ("after", xyz_after)):
             z_column = xyz[:, 2]
             for k, z in enumerate(self.heights or []):
-                band = np.abs(z_column - z) <= half
+                # The band's few points by index, gathered column by column (a boolean mask on an
+                # (n, 3) array, taken again for each use, scans and gathers row by row).
+                band = np.flatnonzero(np.abs(z_column - z) <= half)
+                xy = np.column_stack([xyz[:, 0].take(band), xyz[:, 1].take(band)])
                 raster = self.rasters.get((z, which))
                 if raster is None:
                     raster = self.rasters[(z, which)] = SectionRaster(self.grid)
-                raster.add(xyz[band, :2], time01[band])
+                raster.add(xy, time01.take(band))
                 if k == 0 and which == "after":
-                    shift = xyz_after[band, :2] - xyz_before[band, :2]
-                    self.corrections.add(xyz_after[band, :2], np.hypot(shift[:, 0], shift[:, 1]))
+                    dx = xy[:, 0] - xyz_before[:, 0].take(band)
+                    dy = xy[:, 1] - xyz_before[:, 1].take(band)
+                    self.corrections.add(xy, np.hypot(dx, dy))
             if self.vertical is not None:
                 projected, inside = self.vertical.project(xyz)
                 self.vertical_rasters[which].add(projected, time01[inside])

@@ -25,12 +25,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from kinreg.estimate.control import Assignment, static_station_index
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.network import Network
+from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import FloatArray, Pose
 from kinreg.types import BlockResult, Station, Trajectory
 
@@ -159,7 +159,7 @@ def control_section(network: Network, result: BlockResult, rates: DriftRates, as
             decision = "rejected"
         elif test is not None and np.isfinite(test.statistic):
             normalised = test.normalised
-            decision = "accepted" if test.statistic <= stats.chi2.ppf(1.0 - alpha, test.dof) else "suspect"
+            decision = "accepted" if test.statistic <= chi2_quantile(1.0 - alpha, test.dof) else "suspect"
         row.update({"t": tie.t_s, "station": network.stations[tie.station].name, "normalised": normalised,
                     "decision": decision})
     return {"n": len(rows), "rows": rows, "rejected": [r["name"] for r in rows if r["decision"] == "rejected"],

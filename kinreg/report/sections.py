@@ -272,7 +272,10 @@ class VerticalPlane:
         """(m, 2) (distance along the line, height) of the points inside the band, and which they are."""
         u = (self.end_xy - self.start_xy) / self.length_m
         x, y = xyz[:, 0] - self.start_xy[0], xyz[:, 1] - self.start_xy[1]  # contiguous columns: faster
-        across = x * u[1] - y * u[0]
-        inside = np.abs(across) <= 0.5 * self.band_m
-        along = x[inside] * u[0] + y[inside] * u[1]
-        return np.column_stack([along, xyz[inside, 2]]), inside
+        across = x * u[1]
+        across -= y * u[0]
+        inside = np.abs(across, out=across) <= 0.5 * self.band_m
+        index = np.flatnonzero(inside)  # the band's few points, gathered column by column
+        x, y = x.take(index), y.take(index)
+        along = x * u[0] + y * u[1]
+        return np.column_stack([along, xyz[:, 2].take(index)]), inside

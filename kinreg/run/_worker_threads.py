@@ -3,7 +3,7 @@ one BLAS/OpenMP thread in the server, so that every worker forked from it starts
 makes the server end with the process that started it (its workers then end with it).
 
 Importing this module changes ``os.environ`` and this process's parent-death signal; nothing but
-the forkserver imports it.
+the forkserver imports it, first (it preloads the workers' tasks' module after it).
 """
 
 from kinreg.run.executor import die_with_parent, limit_worker_threads

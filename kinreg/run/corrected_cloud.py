@@ -104,24 +104,59 @@ def write_corrected_las(
 def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Path, T_obj_cloud: Pose | None,
                time_offset_s: float, observer: PointObserver | None) -> Any:
     """One chunk's points (a laspy record) with X, Y, Z corrected; points without a finite time
-    left out."""
+    left out.
+
+    The coordinates go from the raw integers to coordinate rows (3, n) and back with laspy's own
+    formulas (``X * scale + offset``; ``round((x - offset) / scale)`` after its range check), the
+    same bits, but without its scaled views' temporaries of a whole chunk and the copy of
+    ``np.column_stack``: the points are handed on as ``rows.T``, (n, 3) with contiguous columns,
+    which is how the correction and the report's views read them."""
     t = np.asarray(points.gps_time, dtype=np.float64) + time_offset_s
     finite = np.isfinite(t)
     if not finite.all():
         points, t = points[finite], t[finite]
-    xyz = np.column_stack([points.x, points.y, points.z])
+    rows = np.empty((3, len(t)))
+    for row, raw, scale, offset in zip(rows, _raw_xyz(points), points.scales, points.offsets, strict=True):
+        np.multiply(raw, scale, out=row)
+        row += offset
+    xyz = rows.T
     if T_obj_cloud is not None:
-        xyz = T_obj_cloud.apply(xyz)
+        xyz = np.ascontiguousarray(T_obj_cloud.apply(xyz).T).T
         points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
     fixed = correction.apply_to_points(xyz, t)
     if observer is not None:
         observer.add(xyz, fixed, t)
-    try:
-        points.x, points.y, points.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
-    except OverflowError:
-        raise CloudError("a corrected coordinate does not fit the input's scale and offset "
-                         "(32-bit integers)", source) from None
+    for i, (raw, scale, offset) in enumerate(zip(_raw_xyz(points), points.scales, points.offsets, strict=True)):
+        _store(raw, fixed[:, i], float(scale), float(offset), source)
     return points
+
+
+def _raw_xyz(points: Any) -> tuple[Any, Any, Any]:
+    """The record's raw integer X, Y, Z (views into its array)."""
+    return points.array["X"], points.array["Y"], points.array["Z"]
+
+
+_STORE_BLOCK = 1 << 16  # values per block of the rounding (the temporaries stay in the cache)
+
+
+def _store(raw: Any, values: FloatArray, scale: float, offset: float, source: Path) -> None:
+    """``raw[:] = round((values - offset) / scale)``: laspy's setter of a scaled coordinate (the same
+    range check and rounding), in blocks."""
+    if not len(values):
+        return
+    info = np.iinfo(raw.dtype)
+    # laspy's check: the extremes against the integers' range mapped through scale and offset (a
+    # NaN passes it, as there)
+    if values.max() > info.max * scale + offset or values.min() < info.min * scale + offset:
+        raise CloudError("a corrected coordinate does not fit the input's scale and offset "
+                         "(32-bit integers)", source)
+    block = np.empty(min(len(values), _STORE_BLOCK))
+    for a in range(0, len(values), _STORE_BLOCK):
+        part = block[:len(values) - a] if a + _STORE_BLOCK > len(values) else block
+        np.subtract(values[a:a + _STORE_BLOCK], offset, out=part)
+        part /= scale
+        np.rint(part, out=part)
+        raw[a:a + _STORE_BLOCK] = part
 
 
 def _chunks(reader, chunk_points: int, source: Path) -> Iterator:

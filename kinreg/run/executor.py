@@ -16,11 +16,11 @@ One thread per local worker: N workers already keep N cores busy, so each worker
 (OpenBLAS, MKL, BLIS), OpenMP (open3d) and numexpr to one thread (:data:`THREAD_VARIABLES`);
 otherwise every worker would start a pool per core and they would fight over the cores. The
 variables must be set before a worker loads those libraries, so they are set in the forkserver
-itself (its only preloaded module is :mod:`kinreg.run._worker_threads`; ``__main__`` is not
-preloaded), and again in each worker's initialiser, which also limits pools already loaded
-when ``threadpoolctl`` is installed. The calling process is left as it is: in-process runs
-(``workers=1``) keep every BLAS thread. Dask workers are configured by their cluster (Dask's
-nanny already sets these variables to 1).
+itself (its first preloaded module is :mod:`kinreg.run._worker_threads`, before the tasks' module
+:mod:`kinreg.run.stages` loads numpy; ``__main__`` is not preloaded), and again in each
+worker's initialiser, which also limits pools already loaded when ``threadpoolctl`` is installed.
+The calling process is left as it is: in-process runs (``workers=1``) keep every BLAS thread.
+Dask workers are configured by their cluster (Dask's nanny already sets these variables to 1).
 
 The functions given to :func:`parallel_map` must be importable top-level functions of a module
 (not lambdas, closures or functions defined in ``__main__`` of a script run by a worker), and
@@ -172,9 +172,11 @@ def _mp_context() -> multiprocessing.context.BaseContext:
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
     # Effective when this starts the forkserver (the first pool of the process): workers are forked
-    # from a server that has set the thread variables and has not loaded numpy (nor __main__, which
-    # may import it).
-    context.set_forkserver_preload(["kinreg.run._worker_threads"])
+    # from a server that has set the thread variables before it loaded numpy (not __main__, which
+    # may import it first). Then it imports the module of the workers' tasks (kinreg.run.stages:
+    # numpy, scipy, most of kinreg; about a CPU second) once, which every worker forked from it
+    # would otherwise import again when its first task is unpickled.
+    context.set_forkserver_preload(["kinreg.run._worker_threads", "kinreg.run.stages"])
     return context
 
 

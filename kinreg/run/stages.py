@@ -10,7 +10,6 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from kinreg.config import (
     DriftConfig,
@@ -39,6 +38,7 @@ from kinreg.estimate.network import Network, link_pair, station_pairs
 from kinreg.estimate.planes import detect_planes
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import SensorTrack, sensor_track
+from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.io.checks import check_inputs
 from kinreg.io.reference_planes import ReferencePlanes
@@ -333,7 +333,7 @@ def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
     links = [t for t in result.tests if t.kind is ObservationKind.TRAJECTORY and np.isfinite(t.statistic)]
     if not links:
         return
-    critical = {dof: stats.chi2.ppf(1.0 - alpha / len(links), dof) for dof in {t.dof for t in links}}
+    critical = {dof: chi2_quantile(1.0 - alpha / len(links), dof) for dof in {t.dof for t in links}}
     bad = sorted((t for t in links if t.statistic > critical[t.dof]), key=lambda t: -t.statistic / critical[t.dof])
     if bad:
         worst = ", ".join(f"{t.i}-{t.j} ({t.normalised:.0f} sigma)" for t in bad[:5])
