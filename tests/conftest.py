@@ -36,6 +36,20 @@ def make_trajectory(duration_s: float = 30.0, rate_hz: float = 100.0, t0: float 
     return Trajectory(t, Pose(rotvec_to_quat(rotvec), xyz))
 
 
+def random_correction(traj: Trajectory, n_stations: int, rng: np.random.Generator, sigma_rad: float,
+                      sigma_m: float, margin_s: float):
+    """A :class:`~kinreg.estimate.correction.DriftCorrection` of ``n_stations`` evenly spaced along
+    ``traj`` (``margin_s`` from either end), each adjusted by a random turn (``sigma_rad``) and shift
+    (``sigma_m``); returns it, the station times and their initial poses."""
+    from kinreg.estimate.correction import DriftCorrection
+
+    ts = np.linspace(traj.t_start_s + margin_s, traj.t_end_s - margin_s, n_stations)
+    initial = traj.pose_at(ts)
+    turns, shifts = rng.normal(0, sigma_rad, (n_stations, 3)), rng.normal(0, sigma_m, (n_stations, 3))
+    adjusted = initial.compose(Pose(rotvec_to_quat(turns), shifts))
+    return DriftCorrection.from_stations(ts, initial, adjusted, traj), ts, initial
+
+
 @dataclass
 class SyntheticRun:
     trajectory: Trajectory

@@ -6,10 +6,10 @@ from __future__ import annotations
 import laspy
 import numpy as np
 import pytest
-from conftest import make_trajectory
+from conftest import make_trajectory, random_correction
 
 from kinreg.estimate.correction import DriftCorrection
-from kinreg.geometry import Pose, rotvec_to_quat
+from kinreg.geometry import Pose
 from kinreg.run.corrected_cloud import write_corrected_las
 
 
@@ -17,10 +17,7 @@ from kinreg.run.corrected_cloud import write_corrected_las
 def test_chunked_overlapped_writer_gives_every_point_its_correction(tmp_path, suffix) -> None:
     rng = np.random.default_rng(3)
     traj = make_trajectory(40.0)
-    ts = np.linspace(traj.t_start_s + 1.0, traj.t_end_s - 1.0, 8)
-    initial = traj.pose_at(ts)
-    adjusted = initial.compose(Pose(rotvec_to_quat(rng.normal(0, 0.003, (8, 3))), rng.normal(0, 0.03, (8, 3))))
-    correction = DriftCorrection.from_stations(ts, initial, adjusted, traj)
+    correction, _, _ = random_correction(traj, 8, rng, 0.003, 0.03, margin_s=1.0)
     n = 25_000
     t = rng.uniform(traj.t_start_s, traj.t_end_s, n)  # not time-sorted
     xyz = traj.pose_at(t).t_xyz + rng.normal(0, 5.0, (n, 3))
@@ -55,10 +52,7 @@ def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
 
     rng = np.random.default_rng(4)
     traj = make_trajectory(30.0, offset=(500_000.0, 5_400_000.0, 300.0))
-    ts = np.linspace(traj.t_start_s + 1.0, traj.t_end_s - 1.0, 6)
-    initial = traj.pose_at(ts)
-    adjusted = initial.compose(Pose(rotvec_to_quat(rng.normal(0, 0.003, (6, 3))), rng.normal(0, 0.03, (6, 3))))
-    correction = DriftCorrection.from_stations(ts, initial, adjusted, traj)
+    correction, ts, initial = random_correction(traj, 6, rng, 0.003, 0.03, margin_s=1.0)
     n = 150_000  # more than one block of the rounding
     header = laspy.LasHeader(point_format=6, version="1.4")
     header.scales, header.offsets = np.array([1e-4, 1e-4, 1e-3]), np.array([500_000.0, 5_400_000.0, 300.0])

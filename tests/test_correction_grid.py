@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import make_trajectory
+from conftest import make_trajectory, random_correction
 
 from kinreg.estimate.correction import DriftCorrection, _interval_runs
 from kinreg.geometry import Pose, rotvec_to_quat
@@ -22,10 +22,8 @@ def _exact(c: DriftCorrection, xyz: np.ndarray, t: np.ndarray) -> np.ndarray:
 def test_grid_correction_is_within_a_hundredth_of_a_millimetre_of_the_exact_one(offset) -> None:
     rng = np.random.default_rng(1)
     traj: Trajectory = make_trajectory(60.0, offset=offset)
-    ts = np.linspace(traj.t_start_s + 2.0, traj.t_end_s - 2.0, 12)  # points before and after the stations too
-    initial = traj.pose_at(ts)
-    adjusted = initial.compose(Pose(rotvec_to_quat(rng.normal(0, 0.005, (12, 3))), rng.normal(0, 0.05, (12, 3))))
-    correction = DriftCorrection.from_stations(ts, initial, adjusted, traj)
+    # points before and after the stations too
+    correction, _, _ = random_correction(traj, 12, rng, 0.005, 0.05, margin_s=2.0)
     t = np.sort(rng.uniform(traj.t_start_s, traj.t_end_s, 200_000))
     xyz = traj.pose_at(t).t_xyz + rng.normal(0, 15.0, (len(t), 3))
     fast = correction.apply_to_points(xyz, t)
@@ -103,10 +101,7 @@ def test_blocked_row_wise_correction_gives_the_bits_of_the_per_point_formula(lay
     formula does: corrected.laz keeps its integers."""
     rng = np.random.default_rng(5)
     traj = make_trajectory(60.0, offset=(500_000.0, 5_400_000.0, 300.0))
-    ts = np.linspace(traj.t_start_s + 2.0, traj.t_end_s - 2.0, 10)
-    initial = traj.pose_at(ts)
-    adjusted = initial.compose(Pose(rotvec_to_quat(rng.normal(0, 0.005, (10, 3))), rng.normal(0, 0.05, (10, 3))))
-    correction = DriftCorrection.from_stations(ts, initial, adjusted, traj)
+    correction, _, _ = random_correction(traj, 10, rng, 0.005, 0.05, margin_s=2.0)
     n = 70_000  # several blocks and a partial one
     t = rng.uniform(traj.t_start_s, traj.t_end_s, n)  # random: every block spans the run
     # times exactly on grid nodes (the interval above them), repeated times, and a gap of empty intervals

@@ -9,21 +9,28 @@ from kinreg.estimate.drift import plane_time_offsets
 from kinreg.geometry import Pose
 
 
+def _members(points_xyz, plane, band_m):
+    """The definition of a plane's points: a float64 test of every point against the band and the
+    extent. Their indices, and their coordinates about the centroid."""
+    near = np.flatnonzero(np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m)
+    local = points_xyz[near] - plane.centroid_xyz
+    hull = plane.hull_xyz - plane.centroid_xyz
+    inside = np.ones(len(local), dtype=bool)
+    for axis in plane.basis_uv:
+        inside &= (local @ axis >= (hull @ axis).min() - 1e-9) & (local @ axis <= (hull @ axis).max() + 1e-9)
+    return near[inside], local[inside]
+
+
 def _one_pass(points_xyz, stamps_s, t_s, planes, band_m):
-    """The definition: per plane, a float64 test of every point against the band and the extent."""
+    """The definition: per plane, the mean and slope of its points' times (:func:`_members`)."""
     offsets = np.full(len(planes), np.nan)
     slopes = np.full((len(planes), 2), np.nan)
     for k, plane in enumerate(planes):
-        near = np.abs(points_xyz @ plane.normal - plane.d_m) <= band_m
-        local = points_xyz[near] - plane.centroid_xyz
-        hull = plane.hull_xyz - plane.centroid_xyz
-        inside = np.ones(len(local), dtype=bool)
-        for axis in plane.basis_uv:
-            inside &= (local @ axis >= (hull @ axis).min() - 1e-9) & (local @ axis <= (hull @ axis).max() + 1e-9)
-        if inside.any():
-            t = stamps_s[near][inside]
+        idx, local = _members(points_xyz, plane, band_m)
+        if len(idx):
+            t = stamps_s[idx]
             offsets[k] = float(np.mean(t)) - t_s
-            st = local[inside] @ plane.basis_uv.T
+            st = local @ plane.basis_uv.T
             st = st - st.mean(axis=0)
             A = st.T @ st
             if len(t) >= 3 and np.linalg.cond(A) < 1e8:
@@ -96,16 +103,11 @@ def test_sensor_moments_equal_those_of_the_points_of_a_float64_pass():
     want_offsets, _ = _one_pass(points, stamps, 100.0, planes, 0.03)
     assert np.array_equal(times.offsets, want_offsets)
     for k, plane in enumerate(planes):
-        near = np.abs(points @ plane.normal - plane.d_m) <= 0.03
-        local = points[near] - plane.centroid_xyz
-        hull = plane.hull_xyz - plane.centroid_xyz
-        inside = np.ones(len(local), dtype=bool)
-        for axis in plane.basis_uv:
-            inside &= (local @ axis >= (hull @ axis).min() - 1e-9) & (local @ axis <= (hull @ axis).max() + 1e-9)
-        t = stamps[near][inside]
+        idx, local = _members(points, plane, 0.03)
+        t = stamps[idx]
         seen = np.column_stack([np.interp(t, track_t, track[1][:, i]) for i in range(3)])
         np.testing.assert_allclose(times.sensor[k], seen.mean(axis=0), rtol=0, atol=1e-12)
-        st = local[inside] @ plane.basis_uv.T
+        st = local @ plane.basis_uv.T
         st = st - st.mean(axis=0)
         slope = np.linalg.solve(st.T @ st, st.T @ (seen - seen.mean(axis=0)))  # (2, 3)
         np.testing.assert_allclose(times.sensor_slopes[k], slope.T, rtol=0, atol=1e-12)
