@@ -300,3 +300,58 @@ def test_the_damped_step_recovers_from_a_start_where_gauss_newton_overshoots():
     result = adjust_block(start, obs, fixed, BlockConfig(max_iterations=100, data_snooping=False))
     assert not result.failed
     assert np.max(np.linalg.norm(result.poses.t_xyz - truth.t_xyz, axis=1)) < 0.05
+
+
+def test_a_plane_link_anywhere_along_its_free_direction_moves_nothing():
+    # A link's planes leave a direction free (a corridor); its pose there is whatever its prior
+    # gave, metres off after a large drift. The information is zero along it, so the adjustment
+    # must not depend on it: not through the residual's rotation (the SE(3) log turned a 7 m
+    # free shift into 3.5 mm a milliradian across it), nor in how fast it converges.
+    rng = np.random.default_rng(11)
+    truth, approx, obs = network(rng, n=30)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    free = [k for k, o in enumerate(obs) if o.kind is ObservationKind.PLANES and o.rank == 5]
+    assert free
+    far = list(obs)
+    for k in free:  # 7 m further along the free axis (x of station i's frame)
+        far[k] = RelativeObservation(obs[k].kind, obs[k].i, obs[k].j,
+                                     Pose(obs[k].Z.quat_wxyz, obs[k].Z.t_xyz + obs[k].Z.rotation_matrix @ [7.0, 0, 0]),
+                                     obs[k].info, obs[k].rank)
+    cfg = BlockConfig(data_snooping=False, variance_components=False)
+    near_result, far_result = adjust_block(approx, obs, fixed, cfg), adjust_block(approx, far, fixed, cfg)
+    assert not near_result.failed and not far_result.failed
+    assert far_result.iterations <= near_result.iterations + 1
+    np.testing.assert_allclose(far_result.poses.t_xyz, near_result.poses.t_xyz, atol=1e-7)
+    assert far_result.sigma0 == pytest.approx(near_result.sigma0, rel=1e-6)
+
+
+@pytest.mark.parametrize("kind", [ObservationKind.PLANES, ObservationKind.FRAME, ObservationKind.STATION])
+def test_pose_residual_jacobians_hold_across_a_large_free_shift(kind):
+    # The residual (translation difference in Z's axes, rotation vector of Z^-1 rel) against finite
+    # differences, 7 m off along x and 10 mrad turned: the first slot is exact, and so is the
+    # second of a FRAME tie (stiff: 0.01 mm); elsewhere the second is the identity, first order in
+    # the residual's rotation.
+    from kinreg.estimate import block
+
+    rng = np.random.default_rng(2)
+    poses = Pose.exp(rng.normal(0.0, [3.0, 3.0, 0.5, 0.3, 0.3, 1.0], (2, 6)))
+    j = -1 if kind is ObservationKind.STATION else 1
+    rel = poses[0] if j < 0 else poses[0].inverse().compose(poses[1])
+    Z = rel.compose(Pose.exp(np.r_[-7.0, 0.02, -0.01, 0.004, -0.006, 0.0075]))
+    observation = RelativeObservation(kind, 0, j, Z, np.eye(6), 6)
+    active = block._arrays([observation], np.ones(1, dtype=bool), -np.ones(2, dtype=int),
+                           {k.value: 1.0 for k in ObservationKind})
+    velocity = np.zeros((0, 6))
+    e0, J = block._linearise(poses, velocity, active)
+    np.testing.assert_allclose(e0[0, :3], Z.rotation_matrix.T @ (rel.t_xyz - Z.t_xyz), atol=1e-12)
+    for node in (0,) if j < 0 else (0, 1):
+        numeric = np.zeros((6, 6))
+        for axis in range(6):
+            step = np.zeros((2, 6))
+            step[node, axis] = 1e-6
+            ahead, _ = block._linearise(poses.compose(Pose.exp(step)), velocity, active, jacobians=False)
+            back, _ = block._linearise(poses.compose(Pose.exp(-step)), velocity, active, jacobians=False)
+            numeric[:, axis] = (ahead[0] - back[0]) / 2e-6
+        exact = node == 0 or kind is ObservationKind.FRAME
+        np.testing.assert_allclose(J[0, node], numeric, atol=1e-7 if exact else 2e-2 * np.abs(numeric).max())

@@ -9,7 +9,9 @@ plane-only information of every pairwise link, the trajectory's own relative pos
 consecutive stations (once; less its drift velocity times its duration), the drift velocity's
 change from one link to the next, direct observations of station poses, and surveyed points on
 the pose interpolated between two stations (control points). Damped Gauss-Newton
-on SE(3) with a sparse normal matrix (CHOLMOD where available). Fixed stations define the datum.
+on SE(3) with a sparse normal matrix (CHOLMOD where available); a pose residual is the
+translation difference in the observation's axes and the rotation vector (:func:`_linearise`).
+Fixed stations define the datum.
 
 After convergence: the a-posteriori standard deviation of unit weight and the global test,
 per-observation test statistics and redundancy numbers from the 6x6 blocks of the inverse
@@ -42,7 +44,7 @@ from kinreg.estimate.snooping import (
     worst_outliers,
 )
 from kinreg.estimate.sparse import in_threads, kept_heap, one_blas_thread
-from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, relative_poses, skew
+from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, quat_to_rotvec, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation
 
@@ -168,9 +170,11 @@ _CHUNK = 1 << 15
 
 def _linearise(poses: Pose, velocity: FloatArray, a: _Active, jacobians: bool = True,
                out: tuple[FloatArray, FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
-    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) to first order
-    in the residual. Pose observations: ``e = log(Z^-1 T_i^-1 T_j) - dt S_j v`` (``log(Z^-1 T_i)``
-    for a station's pose); drift observations ``e = v_j - decay v_i`` (``v_i``); point observations
+    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) (see
+    :func:`_pose_residuals` for where they are exact). Pose observations: with ``D = Z^-1 T_i^-1 T_j``
+    (``Z^-1 T_i`` for a station's pose), ``e = (t_D, rotvec(R_D)) - dt S_j v``, the translation
+    difference in Z's axes and the rotation vector (the right-perturbation twist to first order);
+    drift observations ``e = v_j - decay v_i`` (``v_i``); point observations
     ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes). ``out``: an earlier result of the same
     ``a`` (with ``jacobians``) to write into: the same entries are written every time, the others
     stay zero."""
@@ -215,16 +219,28 @@ def _unit_slots(a: _Active) -> np.ndarray:
     """(k, 3) bool: where :func:`_linearise` makes a slot's Jacobian the identity, whatever the state
     (the second station of a relative pose, the second link of a drift observation)."""
     unit = np.zeros((len(a.idx), 3), dtype=bool)
-    unit[:, 1] = (a.pose & ~a.station) | (~a.pose & ~a.point & (a.nodes[:, 1] >= 0))
+    unit[:, 1] = ((a.pose & ~a.station & (a.kinds != ObservationKind.FRAME.value))
+                  | (~a.pose & ~a.point & (a.nodes[:, 1] >= 0)))
     return unit
+
+
+def _so3_right_jacobian_inv(phi: FloatArray) -> FloatArray:
+    """(k, 3, 3): SO(3)'s inverse right Jacobian at rotation vectors ``phi`` (k, 3), ``I + [phi]x / 2
+    + c [phi]x^2`` with ``c = 1 / theta^2 - (1 + cos theta) / (2 theta sin theta)`` (1/12 near 0)."""
+    theta = np.linalg.norm(phi, axis=1)
+    small = theta < 1e-4
+    th = np.where(small, 1.0, theta)
+    c = np.where(small, 1.0 / 12.0, 1.0 / th**2 - (1.0 + np.cos(th)) / (2.0 * th * np.sin(th)))
+    K = skew(phi)
+    return np.eye(3) + 0.5 * K + c[:, None, None] * (K @ K)
 
 
 def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active, p: np.ndarray | slice,
                     e: FloatArray, J: FloatArray | None) -> None:
     """Pose observations ``p`` (indices or a slice): their residuals into ``e`` and (with ``J``) their
-    Jacobians (:func:`_linearise`); ``R`` the stations' rotation matrices. Every product is formed as
-    :class:`Pose`'s algebra forms it, so the figures are the same to the last bit (the pipeline's
-    loops of block, drift and relinking carry a last-bit difference to the 8th decimal)."""
+    Jacobians (:func:`_linearise`); ``R`` the stations' rotation matrices. The relative poses are
+    formed as :class:`Pose`'s algebra forms them, so the figures are the same to the last bit (the
+    pipeline's loops of block, drift and relinking carry a last-bit difference to the 8th decimal)."""
     at = np.arange(p.start, p.stop) if isinstance(p, slice) else p
     st = a.station[p]
     i = a.nodes[p, 0]
@@ -241,7 +257,16 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         turned = np.einsum("kji,kj->ki", R_i[coupled], a.step[at[coupled]])
         t_Z = t_Z.copy()
         t_Z[coupled] = (1.0 - kappa[coupled, None]) * t_Z[coupled] + kappa[coupled, None] * turned
-    e[p] = Pose(*relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel)).log()
+    # The residual: the translation difference in Z's axes and the rotation vector of Z^-1 rel, not
+    # the SE(3) logarithm. Both agree to first order; they part where the translation residual is
+    # large, along a direction that a plane link's planes leave (nearly) free: there the log's
+    # rho = J_l(phi)^-1 t turns every milliradian of the pair into rho x phi / 2 of shift across
+    # that direction (3.5 mm at 7 m), which neither the information nor the Jacobians know of.
+    # Gauss-Newton crawled on such links (the undamped step rose the cost in every iteration).
+    q_e, t_e = relative_poses(q_Z, t_Z, R_Z, q_rel, t_rel)
+    phi_e = quat_to_rotvec(q_e)
+    e[p, :3] = t_e
+    e[p, 3:] = phi_e
     v = a.nodes[p, 2]
     has_v = np.flatnonzero(v >= 0)
     S = None
@@ -253,18 +278,29 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         e[at[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
     if J is None:
         return
-    # -Ad(rel^-1) = -[[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
+    # The Jacobians of that residual for right perturbations (rho, phi) of T_i and T_j: with
+    # rel = (R, t), d t = -rho_i + [t]x phi_i + R rho_j, and the rotation's d e_r =
+    # J_r^-1(e_r) (phi_j - R^T phi_i). A FRAME tie (scan frame to sensor pose, down to 0.01 mm) is
+    # stiff enough that the residual's own rotation matters in its second slot: there the exact
+    # one; elsewhere that slot is the identity (first order in the residual's rotation, a few
+    # milliradians at most; the normal equations skip its products).
+    R_Zt = np.transpose(R_Z, (0, 2, 1))
     R_inv = quat_to_matrix(quat_conjugate(q_rel))
+    Jr_inv = _so3_right_jacobian_inv(phi_e)
     J_i = np.zeros((len(at), 6, 6))
-    J_i[:, :3, :3] = -R_inv
-    J_i[:, 3:, 3:] = -R_inv
-    J_i[:, :3, 3:] = -(skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv)
-    J_i[st] = np.eye(6)
+    J_i[:, :3, :3] = -R_Zt
+    J_i[:, :3, 3:] = R_Zt @ skew(t_rel)
+    J_i[:, 3:, 3:] = -(Jr_inv @ R_inv)
     if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
-        R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
-        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
+        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt[coupled] @ skew(turned)
+    J_second = np.zeros((len(at), 6, 6))
+    J_second[:, :3, :3] = R_Zt @ np.transpose(R_inv, (0, 2, 1))
+    J_second[:, 3:, 3:] = Jr_inv
+    J_i[st] = J_second[st]  # a station's pose: e = (R_Z^T (t_i - t_Z), log(R_Z^T R_i))
     J[p, 0] = J_i
-    J[at[~st], 1] = np.eye(6)
+    stiff = a.kinds[at] == ObservationKind.FRAME.value
+    J[at[~st & ~stiff], 1] = np.eye(6)
+    J[at[~st & stiff], 1] = J_second[~st & stiff]
     if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
         J[at[has_v], 2] = S
 
