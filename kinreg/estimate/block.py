@@ -278,29 +278,32 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         e[at[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
     if J is None:
         return
-    # The Jacobians of that residual for right perturbations (rho, phi) of T_i and T_j: with
-    # rel = (R, t), d t = -rho_i + [t]x phi_i + R rho_j, and the rotation's d e_r =
-    # J_r^-1(e_r) (phi_j - R^T phi_i). A FRAME tie (scan frame to sensor pose, down to 0.01 mm) is
-    # stiff enough that the residual's own rotation matters in its second slot: there the exact
-    # one; elsewhere that slot is the identity (first order in the residual's rotation, a few
-    # milliradians at most; the normal equations skip its products).
-    R_Zt = np.transpose(R_Z, (0, 2, 1))
+    # The Jacobians for right perturbations (rho, phi): of T_j, J_j = [[R_Z^T R, 0], [0, J_r^-1(e_r)]]
+    # with rel = (R, t), and of T_i, J_i = -J_j Ad(rel^-1) (one motion of both leaves the residual
+    # as it is: the network's turn about its datum stays free). J_j depends on the residual's
+    # rotation only, not on its translation, so the identity is right to first order in a few
+    # milliradians, whatever a free shift is; so it is taken (the normal equations skip its
+    # products), except for a FRAME tie (scan frame to sensor pose, down to 0.01 mm), stiff enough
+    # for that first order to stall Gauss-Newton: there both are exact.
     R_inv = quat_to_matrix(quat_conjugate(q_rel))
-    Jr_inv = _so3_right_jacobian_inv(phi_e)
-    J_i = np.zeros((len(at), 6, 6))
-    J_i[:, :3, :3] = -R_Zt
-    J_i[:, :3, 3:] = R_Zt @ skew(t_rel)
-    J_i[:, 3:, 3:] = -(Jr_inv @ R_inv)
-    if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
-        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt[coupled] @ skew(turned)
-    J_second = np.zeros((len(at), 6, 6))
-    J_second[:, :3, :3] = R_Zt @ np.transpose(R_inv, (0, 2, 1))
-    J_second[:, 3:, 3:] = Jr_inv
-    J_i[st] = J_second[st]  # a station's pose: e = (R_Z^T (t_i - t_Z), log(R_Z^T R_i))
-    J[p, 0] = J_i
+    ad = np.zeros((len(at), 6, 6))  # Ad(rel^-1) = [[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
+    ad[:, :3, :3] = R_inv
+    ad[:, 3:, 3:] = R_inv
+    ad[:, :3, 3:] = skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv
     stiff = a.kinds[at] == ObservationKind.FRAME.value
+    exact = stiff | st
+    J_second = np.zeros((int(np.count_nonzero(exact)), 6, 6))
+    J_second[:, :3, :3] = np.transpose(R_Z[exact], (0, 2, 1)) @ np.transpose(R_inv[exact], (0, 2, 1))
+    J_second[:, 3:, 3:] = _so3_right_jacobian_inv(phi_e[exact])
+    J_i = -ad
+    J_i[exact] = -(J_second @ ad[exact])
+    J_i[st] = J_second[st[exact]]  # a station's pose: e = (R_Z^T (t_i - t_Z), log(R_Z^T R_i))
+    if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
+        R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
+        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
+    J[p, 0] = J_i
     J[at[~st & ~stiff], 1] = np.eye(6)
-    J[at[~st & stiff], 1] = J_second[~st & stiff]
+    J[at[~st & stiff], 1] = J_second[stiff[exact] & ~st[exact]]
     if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
         J[at[has_v], 2] = S
 
