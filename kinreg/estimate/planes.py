@@ -513,10 +513,10 @@ def _ransac_planes(down: FloatArray, config: PlanesConfig,
         sample = alive_idx
         if len(alive_idx) > config.ransac_sample_points:
             sample = rng.choice(alive_idx, size=config.ransac_sample_points, replace=False)
-        votes = (np.abs(down[sample] @ hyp_n[hyp].T - hyp_d[hyp]) < thr).sum(axis=0)
+        votes = _votes(down[sample] @ hyp_n[hyp].T, hyp_d[hyp], thr)
         top = hyp[np.argsort(-votes, kind="stable")[:_TOP_HYPOTHESES]]
         rest = down[alive_idx]
-        full_votes = (np.abs(rest @ hyp_n[top].T - hyp_d[top]) < thr).sum(axis=0)
+        full_votes = _votes(rest @ hyp_n[top].T, hyp_d[top], thr)
         best = int(top[np.argmax(full_votes)])
         n, d = hyp_n[best], float(hyp_d[best])
         inl = np.abs(rest @ n - d) < thr
@@ -549,6 +549,13 @@ def _ransac_planes(down: FloatArray, config: PlanesConfig,
         remaining = np.bincount(cell[alive], minlength=len(hyp_d))
         valid &= remaining >= _CELL_ALIVE_SHARE * cell_total
     return models
+
+
+def _votes(dots: FloatArray, offsets: FloatArray, distance_m: float) -> IntArray:
+    """Per column of ``dots`` (points x planes, the points' products with the planes' normals):
+    how many points lie within ``distance_m`` of the plane (``offsets`` (K,)); in place."""
+    dots -= offsets
+    return np.count_nonzero(np.abs(dots, out=dots) < distance_m, axis=0)
 
 
 def _same_plane(normals: FloatArray, offsets: FloatArray, n: FloatArray, d: float,
@@ -591,8 +598,9 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     normals = np.array([n for n, _ in models])
     crossing = np.abs(normals @ normals.T) < np.cos(_CROSSING_ANGLE_RAD)
     crossing = np.concatenate([crossing, np.zeros((none, 1), dtype=bool)], axis=1)  # column: no plane
+    r = np.empty(len(points32), dtype=np.float32)  # one buffer for every plane's distances
     for k, (n, d) in enumerate(models):
-        r = points32 @ n.astype(np.float32)
+        np.matmul(points32, n.astype(np.float32), out=r)
         r -= np.float32(d)
         np.abs(r, out=r)
         idx = np.flatnonzero(r < collect_m)
