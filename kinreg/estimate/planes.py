@@ -404,8 +404,14 @@ def _voxel_downsample(rows: FloatArray, voxel_m: float) -> FloatArray:
     # Non-negative: truncation is the floor. Subtraction and division are monotonic, so the
     # largest index is that of the largest coordinate (no pass over the indices).
     dims = ((rows.max(axis=1) - lower) / voxel_m).astype(np.int64) + 1
-    q = _truncated_rows((rows - lower[:, None]) / voxel_m, int(dims.max()))
-    key = (q[0] * dims[1] + q[1]) * dims[2] + q[2]
+    scaled = rows - lower[:, None]
+    scaled /= voxel_m
+    q = _truncated_rows(scaled, int(dims.max()))
+    del scaled
+    key = q[0] * dims[1]  # int64 (dims is)
+    key += q[1]
+    key *= dims[2]
+    key += q[2]
     n_cells = int(np.prod(dims))
     if n_cells <= _DENSE_VOXELS:  # a mask over the box instead of a sort
         seen = np.zeros(n_cells, dtype=bool)  # a byte a cell, not a count of eight
@@ -423,7 +429,13 @@ def _voxel_downsample(rows: FloatArray, voxel_m: float) -> FloatArray:
     down = np.empty((n_voxels, 3))
     for k in range(3):
         down[:, k] = np.bincount(voxel, weights=rows[k], minlength=n_voxels) / count
-    return down[np.lexsort(down.T[::-1])]
+    # Lexicographic order; without ties in x it is the order of x, which a plain sort finds
+    # several times faster than lexsort's three stable passes.
+    order = np.argsort(down[:, 0])
+    x = down[order, 0]
+    if not np.all(x[1:] > x[:-1]):
+        order = np.lexsort(down.T[::-1])
+    return down[order]
 
 
 def _truncated_rows(values: FloatArray, bound: int) -> NDArray[np.signedinteger[Any]]:
