@@ -476,7 +476,9 @@ def _cell_planes(points: FloatArray, cell_m: float, distance_m: float, min_point
     off = np.einsum("ctj,ctj->ct", nrm, tri[:, :, 0])
     resid = np.abs(np.einsum("ij,itj->it", points, nrm[cell]) - off[cell])  # (M, T)
     within = (resid < distance_m) & ok[cell]
-    votes = np.stack([np.bincount(cell, within[:, t], n_cells) for t in range(_CELL_TRIPLETS)], axis=1)
+    # Inliers per cell and triplet: one count over (cell, triplet) pairs (exact integers).
+    votes = np.bincount((cell[:, None] * _CELL_TRIPLETS + np.arange(_CELL_TRIPLETS))[within],
+                        minlength=n_cells * _CELL_TRIPLETS).reshape(n_cells, _CELL_TRIPLETS)
     best = np.argmax(votes, axis=1)
     w = within[np.arange(len(points)), best[cell]].astype(np.float64)
     # Least squares on the best triplet's inliers, all cells at once.
@@ -617,9 +619,11 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
         np.abs(r, out=r)
         idx = np.flatnonzero(r < collect_m)
         rk = r[idx]
-        prev = label[idx]
-        ambiguous[idx] |= (rk < band_m) & (best[idx] < band_m) & crossing[k, prev]
-        closer = rk < best[idx]
+        best_k = best[idx]
+        if k:  # the first plane crosses none before it
+            both = (rk < band_m) & (best_k < band_m) & crossing[k, label[idx]]
+            ambiguous[idx[both]] = True
+        closer = rk < best_k
         idx = idx[closer]
         best[idx] = rk[closer]
         label[idx] = k
