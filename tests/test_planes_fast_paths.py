@@ -10,18 +10,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from scipy.spatial import ConvexHull
 
+from kinreg.config import PlanesConfig
 from kinreg.estimate.planes import (
     _hull_2d,
     _outside_extreme_polygon,
     _scatter,
+    _split_patches,
     _truncated_rows,
     _votes,
     _voxel_downsample,
     _within,
     plane_covariance,
 )
+from kinreg.geometry import tangent_basis
 
 
 def _voxel_downsample_reference(rows: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -160,3 +164,44 @@ def test_plane_covariance_equals_the_plain_sums() -> None:
     J[2, 0], J[2, 1] = basis[0] @ centroid, basis[1] @ centroid
     got = plane_covariance(st, r, centroid, basis, 1e-4, 2e-4)
     assert np.array_equal(got, J @ cov_c @ J.T)
+
+
+def _split_reference(rows: np.ndarray, normal: np.ndarray, config: PlanesConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The patch split as written before: floor as int64, sizes and members from every point's label."""
+    st = tangent_basis(normal) @ rows
+    st -= st.min(axis=1)[:, None]
+    ij = np.floor(st / config.patch_cell_m).astype(np.int64)
+    shape = (int(ij[0].max()) + 1, int(ij[1].max()) + 1)
+    flat = ij[0] * shape[1] + ij[1]
+    occupancy = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
+    grid, n_labels = ndimage.label(occupancy >= config.patch_min_cell_points, structure=np.ones((3, 3)))
+    point_label = grid.reshape(-1)[flat]
+    sizes = np.bincount(point_label, minlength=n_labels + 1)
+    sizes[0] = 0
+    out = []
+    for lab in np.argsort(-sizes, kind="stable"):
+        if sizes[lab] < config.min_points:
+            break
+        idx = np.flatnonzero(point_label == lab)
+        out.append((idx, flat[idx]))
+    return out
+
+
+@pytest.mark.parametrize("layout", ["one_patch", "door", "stray_points"])
+def test_split_patches_equal_the_plain_formula(layout: str) -> None:
+    rng = np.random.default_rng(21)
+    config = PlanesConfig()
+    st = rng.uniform((0.0, 0.0), (6.0, 2.5), (40_000, 2))
+    if layout == "door":
+        st = st[np.abs(st[:, 0] - 3.0) > 0.6]  # two patches and a sliver above nothing
+    elif layout == "stray_points":
+        st = np.concatenate([st, rng.uniform((-3.0, -3.0), (9.0, 5.0), (300, 2))])  # sparse cells
+    normal = np.array([0.0, 0.6, 0.8])
+    basis = tangent_basis(normal)
+    rows = np.ascontiguousarray((st @ basis + 4.0 * normal + rng.normal(0, 0.005, (len(st), 1)) * normal).T)
+    got = _split_patches(rows, normal, config)
+    want = _split_reference(rows, normal, config)
+    assert len(got) == len(want) >= 1
+    for patch, (idx, cell) in zip(got, want, strict=True):
+        assert np.array_equal(patch.index, idx)
+        assert np.array_equal(patch.cell, cell)

@@ -342,7 +342,6 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
     points32 = points_xyz.astype(np.float32)
     # The largest absolute coordinate without an absolute copy; NaN points are never candidates.
     scale = max(float(np.fmax.reduce(points32, axis=None)), -float(np.fmin.reduce(points32, axis=None))) * np.sqrt(3.0)
-    everything = np.arange(len(points_xyz))
     for first in range(0, len(planes), _PLANES_PER_PASS):
         group = planes[first:first + _PLANES_PER_PASS]
         normals32 = np.array([p.normal for p in group], dtype=np.float32)
@@ -355,7 +354,7 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
                 r32 -= np.float32(plane.d_m)
                 cand = np.flatnonzero(np.abs(r32, out=r32) <= band_m + margin)
             else:
-                cand = everything
+                cand = np.arange(len(points_xyz))
             # The float64 tests on the candidates' rows: a matrix-vector product gives each row the
             # bits of a pass over every point, so a point on the band's edge, or a hull vertex on
             # the extent's, falls on the same side as there. The rows are not compressed by the

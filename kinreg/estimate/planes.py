@@ -686,13 +686,19 @@ def _split_patches(rows: FloatArray, normal: FloatArray, config: PlanesConfig) -
     flat = ij[0] * shape[1] + ij[1]
     occupancy = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
     grid, n_labels = ndimage.label(occupancy >= config.patch_min_cell_points, structure=np.ones((3, 3)))
-    point_label = grid.reshape(-1)[flat]
-    sizes = np.bincount(point_label, minlength=n_labels + 1)
+    # Points per patch from the cells' counts (a pass over the cells, not the points).
+    sizes = np.bincount(grid.reshape(-1), weights=occupancy.reshape(-1), minlength=n_labels + 1).astype(np.int64)
     sizes[0] = 0
-    patches = []
+    patches: list[_Patch] = []
+    point_label = None
     for lab in np.argsort(-sizes, kind="stable"):
         if sizes[lab] < config.min_points:
             break
+        if sizes[lab] == rows.shape[1]:  # every point in one patch (the most common)
+            patches.append(_Patch(np.arange(rows.shape[1]), flat, shape))
+            break
+        if point_label is None:
+            point_label = grid.reshape(-1)[flat]
         idx = np.flatnonzero(point_label == lab)
         patches.append(_Patch(idx, flat[idx], shape))
     return patches
