@@ -601,7 +601,9 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     ambiguous and belongs to neither: it would pull the fit of the plane it is not on, and it
     would bridge a door opening (the floor's edge runs through it) so that the patch split could
     not see the gap. Near-parallel planes (a poster on a wall) just take the nearest.
-    float32 is enough to choose the plane (micrometres at 30 m); the fits use float64.
+    float32 is enough to choose the plane (micrometres at 30 m); the fits use float64. The float32
+    products go over every point in one call: OpenBLAS gives a row other bits in an array of
+    another length, so a pass over nearby points only would move points across the band's edge.
     """
     none = len(models)
     label = np.full(len(points32), none, dtype=np.int64)
