@@ -340,8 +340,8 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
     # decides. The slope's sums on contiguous columns (an (N, 2) array reduces along its first axis
     # several times slower).
     points32 = points_xyz.astype(np.float32)
-    scale = float(np.fmax.reduce(np.abs(points32), axis=None)) * np.sqrt(3.0)  # NaN points are never candidates
-    everything = np.arange(len(points_xyz))
+    # The largest absolute coordinate without an absolute copy; NaN points are never candidates.
+    scale = max(float(np.fmax.reduce(points32, axis=None)), -float(np.fmin.reduce(points32, axis=None))) * np.sqrt(3.0)
     for first in range(0, len(planes), _PLANES_PER_PASS):
         group = planes[first:first + _PLANES_PER_PASS]
         normals32 = np.array([p.normal for p in group], dtype=np.float32)
@@ -354,7 +354,7 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
                 r32 -= np.float32(plane.d_m)
                 cand = np.flatnonzero(np.abs(r32, out=r32) <= band_m + margin)
             else:
-                cand = everything
+                cand = np.arange(len(points_xyz))
             # The float64 tests on the candidates' rows: a matrix-vector product gives each row the
             # bits of a pass over every point, so a point on the band's edge, or a hull vertex on
             # the extent's, falls on the same side as there. The rows are not compressed by the
@@ -362,7 +362,9 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             # centroid is taken off column by column (an (n, 3) array minus a 3-vector runs an
             # inner loop of three per point).
             local = points_xyz.take(cand, axis=0)
-            keep = np.abs(local @ plane.normal - plane.d_m) <= band_m
+            r = local @ plane.normal
+            r -= plane.d_m
+            keep = np.abs(r, out=r) <= band_m
             for i in range(3):
                 local[:, i] -= plane.centroid_xyz[i]
             hull = plane.hull_xyz - plane.centroid_xyz
@@ -379,9 +381,11 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             s, v = (a[keep] for a in along)
             s -= s.mean()
             v -= v.mean()
-            # numpy's sums, not BLAS's dot: the same bits for any number of BLAS threads.
-            sv = np.sum(s * v)
-            A = np.array([[np.sum(s * s), sv], [sv, np.sum(v * v)]])
+            # numpy's sums, not BLAS's dot: the same bits for any number of BLAS threads. The
+            # products go into one buffer (it stays in the cache; fresh arrays cost as much again).
+            product = np.empty(len(t))
+            sv = np.sum(np.multiply(s, v, out=product))
+            A = np.array([[np.sum(np.multiply(s, s, out=product)), sv], [sv, np.sum(np.multiply(v, v, out=product))]])
             # Rows: the time, and with a track the sensor's position at it (np.interp per axis: the
             # same values as interpolate_positions, a fifth of its time).
             seen = np.empty((1 if track is None else 4, len(t)))
@@ -396,7 +400,8 @@ def plane_time_offsets(points_xyz: np.ndarray, stamps_s: np.ndarray, t_s: float,
             if len(t) >= 3 and np.linalg.cond(A) < 1e8:
                 # their slopes across the plane: one least-squares fit for all rows
                 seen -= means[:, None]
-                g = np.linalg.solve(A, np.array([np.sum(seen * s, axis=1), np.sum(seen * v, axis=1)]))
+                rhs = np.array([[np.sum(np.multiply(row, axis, out=product)) for row in seen] for axis in (s, v)])
+                g = np.linalg.solve(A, rhs)
                 slopes[k] = g[:, 0]
                 if track is not None:
                     sensor_slopes[k] = g[:, 1:].T

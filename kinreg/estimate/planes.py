@@ -151,16 +151,18 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
             continue
         group = rows.take(idx, axis=1)
         n, d = models[k]
-        inliers = np.abs(n @ group - d) < band
-        if inliers.sum() < config.min_points:
+        inliers = _within(n, d, group, band)
+        if np.count_nonzero(inliers) < config.min_points:
             continue
         # np.compress: a boolean index along the second axis is about five times slower.
         n, d = _refit(np.compress(inliers, group, axis=1))
-        group = np.compress(np.abs(n @ group - d) < band, group, axis=1)
+        group = np.compress(_within(n, d, group, band), group, axis=1)
         if group.shape[1] < config.min_points:
             continue
         for patch in _split_patches(group, n, config):
-            fit = _fit_patch(group.take(patch.index, axis=1), patch, config)
+            # A plane of one patch (the most common) needs no copy of its points.
+            whole = len(patch.index) == group.shape[1]
+            fit = _fit_patch(group if whole else group.take(patch.index, axis=1), patch, config)
             if fit is not None:
                 fitted.append(fit)
 
@@ -196,12 +198,21 @@ def _column_mean(values: FloatArray) -> FloatArray:
 def _scatter(X: FloatArray) -> FloatArray:
     """``X @ X.T`` of centred coordinate rows (3, N): six sums of products of contiguous rows
     (BLAS's product of a 3 x N by an N x 3 matrix is about ten times slower; numpy's sums, not
-    BLAS's dot, so that the bits do not depend on the number of BLAS threads)."""
+    BLAS's dot, so that the bits do not depend on the number of BLAS threads). The products go
+    into one buffer, which stays in the cache (six fresh arrays cost as much again)."""
     S = np.empty((3, 3))
+    product = np.empty(X.shape[1])
     for i in range(3):
         for j in range(i, 3):
-            S[i, j] = S[j, i] = np.sum(X[i] * X[j])
+            S[i, j] = S[j, i] = np.sum(np.multiply(X[i], X[j], out=product))
     return S
+
+
+def _within(normal: FloatArray, d: float, rows: FloatArray, band_m: float) -> NDArray[np.bool_]:
+    """``np.abs(normal @ rows - d) < band_m`` for coordinate rows (3, N), in one buffer."""
+    r = normal @ rows
+    r -= d
+    return np.abs(r, out=r) < band_m
 
 
 def _median(values: FloatArray) -> float:
@@ -251,13 +262,15 @@ def plane_covariance(
     # Contiguous columns and numpy's own sums (not BLAS: same bits for any thread count).
     s, t = np.ascontiguousarray(st_m[:, 0]), np.ascontiguousarray(st_m[:, 1])
     ws, wt = w * s, w * t
+    product = np.empty(n_pts)  # one buffer for the products to be summed (it stays in the cache)
     meat = np.empty((3, 3))
-    meat[0, 0], meat[1, 1] = np.sum(ws * s), np.sum(wt * t)
-    meat[0, 1] = meat[1, 0] = np.sum(ws * t)
+    meat[0, 0], meat[1, 1] = np.sum(np.multiply(ws, s, out=product)), np.sum(np.multiply(wt, t, out=product))
+    meat[0, 1] = meat[1, 0] = np.sum(np.multiply(ws, t, out=product))
     meat[0, 2] = meat[2, 0] = -np.sum(ws)
     meat[1, 2] = meat[2, 1] = -np.sum(wt)
     meat[2, 2] = w.sum()
-    N_inv = 1.0 / np.array([np.sum(s * s), np.sum(t * t), float(n_pts)])
+    N_inv = 1.0 / np.array([np.sum(np.multiply(s, s, out=product)), np.sum(np.multiply(t, t, out=product)),
+                            float(n_pts)])
     cov_c = N_inv[:, None] * meat * N_inv[None, :] * (n_pts / max(n_pts - 3, 1))
     cov_c[0, 0] += min_sigma_angle_rad**2
     cov_c[1, 1] += min_sigma_angle_rad**2
@@ -292,9 +305,9 @@ def _fit_patch(rows: FloatArray, patch: _Patch, config: PlanesConfig) -> _Fit | 
     c = rows.mean(axis=1)
     X = rows - c[:, None]
     _, V = np.linalg.eigh(_scatter(X))
-    r = V[:, 0] @ X
-    sigma_robust = 1.4826 * _median(np.abs(r))
-    keep = np.abs(r) <= max(_TRIM_SIGMAS * sigma_robust, 1e-9)
+    r = np.abs(V[:, 0] @ X)
+    sigma_robust = 1.4826 * _median(r)
+    keep = r <= max(_TRIM_SIGMAS * sigma_robust, 1e-9)
     cells = patch.cell
     if not keep.all():
         X, cells = np.compress(keep, X, axis=1), cells[keep]
@@ -328,14 +341,51 @@ def _hull_2d(st_rows: FloatArray, candidates: NDArray[np.bool_]) -> tuple[FloatA
     The vertices run counter-clockwise in (s, t), i.e. seen from the side the normal points to
     (the scanner).
 
-    Only the ``candidates`` can be hull vertices (:meth:`_Patch.hull_candidates`).
+    Only the ``candidates`` can be hull vertices (:meth:`_Patch.hull_candidates`); of those, Qhull
+    gets the ones not strictly inside the polygon of the extreme points in eight directions
+    (Akl-Toussaint): a rectangle's rim of cells leaves a few hundred points of some 20,000, the
+    same hull (Qhull on 20,000 points cost most of a patch's fit).
     """
-    cand = np.ascontiguousarray(np.compress(candidates, st_rows, axis=1).T)
+    cand_rows = np.compress(candidates, st_rows, axis=1)
+    cand = np.ascontiguousarray(np.compress(_outside_extreme_polygon(cand_rows), cand_rows, axis=1).T)
     try:
         hull = ConvexHull(cand)
     except (QhullError, ValueError):
         return np.zeros((0, 2)), 0.0
     return cand[hull.vertices], float(hull.volume)
+
+
+# Directions of the extreme points whose polygon screens hull candidates (counter-clockwise).
+_SCREEN_DIRECTIONS = np.array([np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)])
+# A point counts as inside the screening polygon only this far inside each edge [m]: far above the
+# rounding of the test, so that no point on the hull is screened out.
+_SCREEN_MARGIN_M = 1e-9
+
+
+def _outside_extreme_polygon(st_rows: FloatArray) -> NDArray[np.bool_]:
+    """Which 2D points (coordinate rows (2, N)) are not strictly inside the convex polygon of
+    their extreme points in ``_SCREEN_DIRECTIONS``; all of them if that polygon is degenerate.
+    A point strictly inside a polygon of some of the points is no vertex of their convex hull,
+    nor on its boundary, so the hull of the returned points is the hull of all."""
+    n = st_rows.shape[1]
+    if n < 16:
+        return np.ones(n, dtype=bool)
+    extreme = np.argmax(_SCREEN_DIRECTIONS.T @ st_rows, axis=1)
+    # Extreme points in directions sorted by angle run counter-clockwise around the hull.
+    extreme = extreme[np.concatenate([[True], extreme[1:] != extreme[:-1]])]
+    if len(extreme) > 1 and extreme[0] == extreme[-1]:
+        extreme = extreme[:-1]
+    if len(extreme) < 3:
+        return np.ones(n, dtype=bool)
+    corners = st_rows[:, extreme].T  # (K, 2)
+    edges = np.roll(corners, -1, axis=0) - corners
+    length = np.hypot(edges[:, 0], edges[:, 1])
+    if not np.all(length > 0):
+        return np.ones(n, dtype=bool)
+    # Inward unit normals of the counter-clockwise edges; inside: normal . (p - corner) > margin.
+    inward = np.stack([-edges[:, 1], edges[:, 0]], axis=1) / length[:, None]
+    depth = inward @ st_rows - np.einsum("kj,kj->k", inward, corners)[:, None]  # (K, N)
+    return ~np.all(depth > _SCREEN_MARGIN_M, axis=0)
 
 
 # --------------------------------------------------------------------------- downsampling, RANSAC
@@ -351,10 +401,17 @@ def _voxel_downsample(rows: FloatArray, voxel_m: float) -> FloatArray:
     copy of the points.
     """
     lower = rows.min(axis=1) - voxel_m * 0.5
-    # Non-negative: truncation is the floor.
-    q = ((rows - lower[:, None]) / voxel_m).astype(np.int64)
-    dims = q.max(axis=1) + 1
-    key = (q[0] * dims[1] + q[1]) * dims[2] + q[2]
+    # Non-negative: truncation is the floor. Subtraction and division are monotonic, so the
+    # largest index is that of the largest coordinate (no pass over the indices).
+    dims = ((rows.max(axis=1) - lower) / voxel_m).astype(np.int64) + 1
+    scaled = rows - lower[:, None]
+    scaled /= voxel_m
+    q = _truncated_rows(scaled, int(dims.max()))
+    del scaled
+    key = q[0] * dims[1]  # int64 (dims is)
+    key += q[1]
+    key *= dims[2]
+    key += q[2]
     n_cells = int(np.prod(dims))
     if n_cells <= _DENSE_VOXELS:  # a mask over the box instead of a sort
         seen = np.zeros(n_cells, dtype=bool)  # a byte a cell, not a count of eight
@@ -372,7 +429,22 @@ def _voxel_downsample(rows: FloatArray, voxel_m: float) -> FloatArray:
     down = np.empty((n_voxels, 3))
     for k in range(3):
         down[:, k] = np.bincount(voxel, weights=rows[k], minlength=n_voxels) / count
-    return down[np.lexsort(down.T[::-1])]
+    # Lexicographic order; without ties in x it is the order of x, which a plain sort finds
+    # several times faster than lexsort's three stable passes.
+    order = np.argsort(down[:, 0])
+    x = down[order, 0]
+    if not np.all(x[1:] > x[:-1]):
+        order = np.lexsort(down.T[::-1])
+    return down[order]
+
+
+def _truncated_rows(values: FloatArray, bound: int) -> NDArray[np.signedinteger[Any]]:
+    """``values.astype(np.int64)`` of non-negative values below ``bound``: through int32 where
+    they fit (a SIMD conversion, about four times faster than numpy's to int64; the same
+    truncation); int64 arithmetic on them needs an int64 operand."""
+    if bound < 2**31 - 1:
+        return values.astype(np.int32)
+    return values.astype(np.int64)
 
 
 def _cell_planes(points: FloatArray, cell_m: float, distance_m: float, min_points: float,
@@ -404,7 +476,9 @@ def _cell_planes(points: FloatArray, cell_m: float, distance_m: float, min_point
     off = np.einsum("ctj,ctj->ct", nrm, tri[:, :, 0])
     resid = np.abs(np.einsum("ij,itj->it", points, nrm[cell]) - off[cell])  # (M, T)
     within = (resid < distance_m) & ok[cell]
-    votes = np.stack([np.bincount(cell, within[:, t], n_cells) for t in range(_CELL_TRIPLETS)], axis=1)
+    # Inliers per cell and triplet: one count over (cell, triplet) pairs (exact integers).
+    votes = np.bincount((cell[:, None] * _CELL_TRIPLETS + np.arange(_CELL_TRIPLETS))[within],
+                        minlength=n_cells * _CELL_TRIPLETS).reshape(n_cells, _CELL_TRIPLETS)
     best = np.argmax(votes, axis=1)
     w = within[np.arange(len(points)), best[cell]].astype(np.float64)
     # Least squares on the best triplet's inliers, all cells at once.
@@ -453,10 +527,10 @@ def _ransac_planes(down: FloatArray, config: PlanesConfig,
         sample = alive_idx
         if len(alive_idx) > config.ransac_sample_points:
             sample = rng.choice(alive_idx, size=config.ransac_sample_points, replace=False)
-        votes = (np.abs(down[sample] @ hyp_n[hyp].T - hyp_d[hyp]) < thr).sum(axis=0)
+        votes = _votes(down[sample] @ hyp_n[hyp].T, hyp_d[hyp], thr)
         top = hyp[np.argsort(-votes, kind="stable")[:_TOP_HYPOTHESES]]
         rest = down[alive_idx]
-        full_votes = (np.abs(rest @ hyp_n[top].T - hyp_d[top]) < thr).sum(axis=0)
+        full_votes = _votes(rest @ hyp_n[top].T, hyp_d[top], thr)
         best = int(top[np.argmax(full_votes)])
         n, d = hyp_n[best], float(hyp_d[best])
         inl = np.abs(rest @ n - d) < thr
@@ -491,6 +565,13 @@ def _ransac_planes(down: FloatArray, config: PlanesConfig,
     return models
 
 
+def _votes(dots: FloatArray, offsets: FloatArray, distance_m: float) -> IntArray:
+    """Per column of ``dots`` (points x planes, the points' products with the planes' normals):
+    how many points lie within ``distance_m`` of the plane (``offsets`` (K,)); in place."""
+    dots -= offsets
+    return np.count_nonzero(np.abs(dots, out=dots) < distance_m, axis=0)
+
+
 def _same_plane(normals: FloatArray, offsets: FloatArray, n: FloatArray, d: float,
                 distance_m: float) -> NDArray[np.bool_]:
     """Which planes (K, 3), (K,) (either normal sign) coincide with (n, d)."""
@@ -520,7 +601,9 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     ambiguous and belongs to neither: it would pull the fit of the plane it is not on, and it
     would bridge a door opening (the floor's edge runs through it) so that the patch split could
     not see the gap. Near-parallel planes (a poster on a wall) just take the nearest.
-    float32 is enough to choose the plane (micrometres at 30 m); the fits use float64.
+    float32 is enough to choose the plane (micrometres at 30 m); the fits use float64. The float32
+    products go over every point in one call: OpenBLAS gives a row other bits in an array of
+    another length, so a pass over nearby points only would move points across the band's edge.
     """
     none = len(models)
     label = np.full(len(points32), none, dtype=np.int64)
@@ -531,15 +614,18 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     normals = np.array([n for n, _ in models])
     crossing = np.abs(normals @ normals.T) < np.cos(_CROSSING_ANGLE_RAD)
     crossing = np.concatenate([crossing, np.zeros((none, 1), dtype=bool)], axis=1)  # column: no plane
+    r = np.empty(len(points32), dtype=np.float32)  # one buffer for every plane's distances
     for k, (n, d) in enumerate(models):
-        r = points32 @ n.astype(np.float32)
+        np.matmul(points32, n.astype(np.float32), out=r)
         r -= np.float32(d)
         np.abs(r, out=r)
         idx = np.flatnonzero(r < collect_m)
         rk = r[idx]
-        prev = label[idx]
-        ambiguous[idx] |= (rk < band_m) & (best[idx] < band_m) & crossing[k, prev]
-        closer = rk < best[idx]
+        best_k = best[idx]
+        if k:  # the first plane crosses none before it
+            both = (rk < band_m) & (best_k < band_m) & crossing[k, label[idx]]
+            ambiguous[idx[both]] = True
+        closer = rk < best_k
         idx = idx[closer]
         best[idx] = rk[closer]
         label[idx] = k
@@ -596,18 +682,25 @@ def _split_patches(rows: FloatArray, normal: FloatArray, config: PlanesConfig) -
     # A stray far point must not blow up the dense grid: coarsen it instead (very large planes).
     while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:
         cell_m *= 2.0
-    ij = np.floor(st / cell_m).astype(np.int64)
+    # Non-negative: truncation is the floor.
+    ij = _truncated_rows(st / cell_m, int(extent.max() / cell_m) + 1)
     shape = (int(ij[0].max()) + 1, int(ij[1].max()) + 1)
     flat = ij[0] * shape[1] + ij[1]
     occupancy = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
     grid, n_labels = ndimage.label(occupancy >= config.patch_min_cell_points, structure=np.ones((3, 3)))
-    point_label = grid.reshape(-1)[flat]
-    sizes = np.bincount(point_label, minlength=n_labels + 1)
+    # Points per patch from the cells' counts (a pass over the cells, not the points).
+    sizes = np.bincount(grid.reshape(-1), weights=occupancy.reshape(-1), minlength=n_labels + 1).astype(np.int64)
     sizes[0] = 0
-    patches = []
+    patches: list[_Patch] = []
+    point_label = None
     for lab in np.argsort(-sizes, kind="stable"):
         if sizes[lab] < config.min_points:
             break
+        if sizes[lab] == rows.shape[1]:  # every point in one patch (the most common)
+            patches.append(_Patch(np.arange(rows.shape[1]), flat, shape))
+            break
+        if point_label is None:
+            point_label = grid.reshape(-1)[flat]
         idx = np.flatnonzero(point_label == lab)
         patches.append(_Patch(idx, flat[idx], shape))
     return patches
