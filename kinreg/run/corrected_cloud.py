@@ -82,10 +82,11 @@ def write_corrected_las(
                 try:
                     while (points := ahead.result()) is not None:
                         ahead = decoding.submit(next, chunks, None)
-                        points = _corrected(points, correction, header, source, T_obj_cloud, time_offset_s, observer)
+                        points, extremes = _corrected(points, correction, header, source, T_obj_cloud,
+                                                      time_offset_s, observer)
                         if written is not None:
                             written.result()
-                        written = encoding.submit(writer.write_points, points)
+                        written = encoding.submit(_write_points, writer, points, extremes)
                         n += len(points)
                         progress.advance(len(points))
                     if written is not None:
@@ -102,9 +103,10 @@ def write_corrected_las(
 
 
 def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Path, T_obj_cloud: Pose | None,
-               time_offset_s: float, observer: PointObserver | None) -> Any:
-    """One chunk's points (a laspy record) with X, Y, Z corrected; points without a finite time
-    left out.
+               time_offset_s: float, observer: PointObserver | None) -> tuple[Any, list[tuple[float, float]]]:
+    """One chunk's points (a laspy record) with X, Y, Z corrected, points without a finite time
+    left out; and the range of the new raw integers of each of X, Y, Z (for the header, see
+    :func:`_write_points`).
 
     The coordinates go from the raw integers to coordinate rows (3, n) and back with laspy's own
     formulas (``X * scale + offset``; ``round((x - offset) / scale)`` after its range check), the
@@ -126,9 +128,52 @@ def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Pa
     fixed = correction.apply_to_points(xyz, t)
     if observer is not None:
         observer.add(xyz, fixed, t)
-    for i, (raw, scale, offset) in enumerate(zip(_raw_xyz(points), points.scales, points.offsets, strict=True)):
-        _store(raw, fixed[:, i], float(scale), float(offset), source)
-    return points
+    extremes = [_store(raw, fixed[:, i], float(scale), float(offset), source)
+                for i, (raw, scale, offset) in enumerate(zip(_raw_xyz(points), points.scales, points.offsets,
+                                                             strict=True))]
+    return points, extremes
+
+
+def _write_points(writer: Any, points: Any, extremes: list[tuple[float, float]]) -> None:
+    """``writer.write_points(points)`` (a laspy ``LasWriter``), with the header's statistics
+    taken from the chunk's raw X, Y, Z range ``extremes`` (:func:`_store` has it from the
+    rounding) and one count of the return numbers, instead of ``LasHeader.grow``: that passes over
+    the strided record once per field (and sorts the return numbers), about 0.1 s of 2 M points
+    with the GIL held, as much as a tenth of the encoding. The header ends with the same values:
+    the bounds by laspy's formula (``X.max() * scale + offset``), the point count and the points by
+    return; extra-byte statistics still by laspy. (laspy also keeps the GPS time range on the
+    header object; LAS has no field for it, so it is left out.)
+
+    The points are those of the reader of the writer's header: the same point format, scales and
+    offsets (laspy's ``write_points`` would rescale others), and no more than the input had."""
+    if not len(points):
+        return
+    header = writer.header
+    for i, (lo, hi) in enumerate(extremes):
+        header.maxs[i] = max(header.maxs[i], hi * header.scales[i] + header.offsets[i])
+        header.mins[i] = min(header.mins[i], lo * header.scales[i] + header.offsets[i])
+    composed, sub_field = points.sub_fields_dict["return_number"]
+    field = points.array[composed]
+    if field.dtype.itemsize == 1:  # a count of each byte value, then of each return number in them
+        per_byte = np.bincount(field.view(np.uint8), minlength=256)
+        byte = np.arange(256, dtype=np.uint8)
+        return_of_byte = (byte & sub_field.mask) >> ((sub_field.mask & -sub_field.mask).bit_length() - 1)
+        numbers = np.unique(return_of_byte[per_byte > 0])
+        counts = np.array([per_byte[return_of_byte == r].sum() for r in numbers], dtype=np.int64)
+    else:
+        numbers, counts = np.unique(points.return_number, return_counts=True)
+    by_return = header.number_of_points_by_return
+    for number, count in zip(numbers, counts, strict=True):  # laspy's loop over np.unique's values
+        if number == 0:
+            continue
+        if number > len(by_return):
+            break
+        by_return[number - 1] += count
+    header.point_count += len(points)
+    extra_bytes = header.vlrs.get("ExtraBytesVlr")
+    if extra_bytes:
+        extra_bytes[0].grow(points)
+    writer.point_writer.write_points(points)
 
 
 def _raw_xyz(points: Any) -> tuple[Any, Any, Any]:
@@ -139,11 +184,12 @@ def _raw_xyz(points: Any) -> tuple[Any, Any, Any]:
 _STORE_BLOCK = 1 << 16  # values per block of the rounding (the temporaries stay in the cache)
 
 
-def _store(raw: Any, values: FloatArray, scale: float, offset: float, source: Path) -> None:
+def _store(raw: Any, values: FloatArray, scale: float, offset: float, source: Path) -> tuple[float, float]:
     """``raw[:] = round((values - offset) / scale)``: laspy's setter of a scaled coordinate (the same
-    range check and rounding), in blocks."""
+    range check and rounding), in blocks. Returns the smallest and largest of the new integers
+    (from the blocks while they are in the cache; ``(inf, -inf)`` for no values)."""
     if not len(values):
-        return
+        return np.inf, -np.inf
     info = np.iinfo(raw.dtype)
     # laspy's check: the extremes against the integers' range mapped through scale and offset (a
     # NaN passes it, as there)
@@ -151,12 +197,19 @@ def _store(raw: Any, values: FloatArray, scale: float, offset: float, source: Pa
         raise CloudError("a corrected coordinate does not fit the input's scale and offset "
                          "(32-bit integers)", source)
     block = np.empty(min(len(values), _STORE_BLOCK))
+    lows, highs = [], []
     for a in range(0, len(values), _STORE_BLOCK):
         part = block[:len(values) - a] if a + _STORE_BLOCK > len(values) else block
         np.subtract(values[a:a + _STORE_BLOCK], offset, out=part)
         part /= scale
         np.rint(part, out=part)
         raw[a:a + _STORE_BLOCK] = part
+        lows.append(part.min())
+        highs.append(part.max())
+    lo, hi = float(np.min(lows)), float(np.max(highs))  # NaN if there was one
+    if not info.min <= lo <= hi <= info.max:  # a NaN: its integer is the cast's, as in the file
+        lo, hi = float(raw.min()), float(raw.max())
+    return lo, hi
 
 
 def _chunks(reader, chunk_points: int, source: Path) -> Iterator:
