@@ -76,6 +76,7 @@ def write_corrected_las(
                 # The next chunk is decoded and the previous one encoded on threads while this one is
                 # corrected; one chunk in flight each way keeps memory bounded. lazrs holds the GIL
                 # for a whole call, so they overlap little (about 5 % here, benchmarks/RESULTS.md).
+                buffers = _Buffers()
                 chunks = _chunks(reader, chunk_points, source)
                 ahead = decoding.submit(next, chunks, None)
                 written: Future[None] | None = None
@@ -83,7 +84,7 @@ def write_corrected_las(
                     while (points := ahead.result()) is not None:
                         ahead = decoding.submit(next, chunks, None)
                         points, extremes = _corrected(points, correction, header, source, T_obj_cloud,
-                                                      time_offset_s, observer)
+                                                      time_offset_s, observer, buffers)
                         if written is not None:
                             written.result()
                         written = encoding.submit(_write_points, writer, points, extremes)
@@ -102,8 +103,25 @@ def write_corrected_las(
     return n
 
 
+class _Buffers:
+    """The float64 arrays of a chunk's correction, kept from chunk to chunk: a fresh array of a
+    whole chunk costs more than the arithmetic on it (the kernel maps and zeroes its pages again
+    for every chunk; about 5 % of the stage's CPU at 2 M points a chunk)."""
+
+    def __init__(self) -> None:
+        self.arrays: dict[str, FloatArray] = {}
+
+    def get(self, name: str, rows: int, n: int) -> FloatArray:
+        """An uninitialised (rows, n) view, each row contiguous, of the buffer ``name``."""
+        array = self.arrays.get(name)
+        if array is None or array.shape[0] != rows or array.shape[1] < n:
+            array = self.arrays[name] = np.empty((rows, n))
+        return array[:, :n]
+
+
 def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Path, T_obj_cloud: Pose | None,
-               time_offset_s: float, observer: PointObserver | None) -> tuple[Any, list[tuple[float, float]]]:
+               time_offset_s: float, observer: PointObserver | None,
+               buffers: _Buffers | None = None) -> tuple[Any, list[tuple[float, float]]]:
     """One chunk's points (a laspy record) with X, Y, Z corrected, points without a finite time
     left out; and the range of the new raw integers of each of X, Y, Z (for the header, see
     :func:`_write_points`).
@@ -113,11 +131,12 @@ def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Pa
     same bits, but without its scaled views' temporaries of a whole chunk and the copy of
     ``np.column_stack``: the points are handed on as ``rows.T``, (n, 3) with contiguous columns,
     which is how the correction and the report's views read them."""
-    t = np.asarray(points.gps_time, dtype=np.float64) + time_offset_s
+    buffers = buffers or _Buffers()
+    t = np.add(np.asarray(points.gps_time, dtype=np.float64), time_offset_s, out=buffers.get("t", 1, len(points))[0])
     finite = np.isfinite(t)
     if not finite.all():
         points, t = points[finite], t[finite]
-    rows = np.empty((3, len(t)))
+    rows = buffers.get("rows", 3, len(t))
     for row, raw, scale, offset in zip(rows, _raw_xyz(points), points.scales, points.offsets, strict=True):
         np.multiply(raw, scale, out=row)
         row += offset
@@ -125,7 +144,7 @@ def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Pa
     if T_obj_cloud is not None:
         xyz = np.ascontiguousarray(T_obj_cloud.apply(xyz).T).T
         points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
-    fixed = correction.apply_to_points(xyz, t)
+    fixed = correction.apply_to_points(xyz, t, out=buffers.get("fixed", 3, len(t)))
     if observer is not None:
         observer.add(xyz, fixed, t)
     extremes = [_store(raw, fixed[:, i], float(scale), float(offset), source)
