@@ -734,13 +734,15 @@ def test_interrupted_process_leaves_no_file_that_looks_finished(
 ) -> None:
     """Ctrl-C while the corrected cloud is being written: no corrected.laz, no temporary file,
     and none of the files that mark a finished run (stations.csv, report.json)."""
-    original = laspy.LasWriter.write_points
+    from kinreg.run import corrected_cloud
 
-    def interrupt(writer: laspy.LasWriter, points: object) -> None:
-        original(writer, points)
+    original = corrected_cloud._write_points  # laspy's LasWriter.write_points, with the header's statistics
+
+    def interrupt(*args: object) -> None:
+        original(*args)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(laspy.LasWriter, "write_points", interrupt)
+    monkeypatch.setattr(corrected_cloud, "_write_points", interrupt)
     out = tmp_path / "out"
     code, _, err = run_cli(["process", "-t", base_run.trajectory_path, "-c", base_run.cloud_path, "-o", out,
                             "--window-s", "4"], capsys)

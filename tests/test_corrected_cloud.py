@@ -66,9 +66,10 @@ def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
     expected.x, expected.y, expected.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
 
     before = rec.array["X"].copy()
-    got = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
-    for dim in "XYZ":
+    got, extremes = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
+    for dim, (lo, hi) in zip("XYZ", extremes, strict=True):
         assert np.array_equal(got.array[dim], expected.array[dim])
+        assert (lo, hi) == (got.array[dim].min(), got.array[dim].max())
     assert np.abs(got.array["X"] - before).max() > 10  # the correction moved the points (> 1 mm)
 
     far = DriftCorrection.from_stations(ts, initial, initial.compose(Pose(initial.quat_wxyz * 0 + [1, 0, 0, 0],
@@ -76,3 +77,41 @@ def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
     with pytest.raises(CloudError, match="does not fit"):
         _corrected(laspy.ScaleAwarePointRecord(rec.array.copy(), rec.point_format, rec.scales, rec.offsets),
                    far, header, tmp_path / "in.laz", None, 0.0, None)
+
+
+@pytest.mark.parametrize("point_format", [6, 1])
+def test_header_statistics_are_laspys(tmp_path, point_format) -> None:
+    """The header of corrected.laz (bounds, point count, points by return), gathered from the
+    correction instead of laspy's ``LasHeader.grow``, is byte for byte the one laspy writes for the
+    same points; also with several return numbers (4 bits in format 6, 3 in format 1) and points
+    without a finite time left out."""
+    rng = np.random.default_rng(5)
+    traj = make_trajectory(30.0)
+    correction, _, _ = random_correction(traj, 6, rng, 0.003, 0.03, margin_s=1.0)
+    n = 20_000
+    t = rng.uniform(traj.t_start_s, traj.t_end_s, n)
+    t[::997] = np.nan
+    xyz = traj.pose_at(np.nan_to_num(t, nan=traj.t_start_s)).t_xyz + rng.normal(0, 5.0, (n, 3))
+    header = laspy.LasHeader(point_format=point_format, version="1.4" if point_format >= 6 else "1.2")
+    header.scales, header.offsets = np.array([1e-4, 1e-4, 1e-3]), np.array([10.0, -20.0, 0.0])
+    source = tmp_path / "in.laz"
+    with laspy.open(source, mode="w", header=header, do_compress=True) as w:
+        rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
+        rec.x, rec.y, rec.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        rec.gps_time = t
+        top = 15 if point_format >= 6 else 7
+        rec.return_number = rng.integers(0, top + 1, n)
+        rec.number_of_returns = np.full(n, top, dtype=np.uint8)
+        w.write_points(rec)
+
+    target = tmp_path / "out.laz"
+    assert write_corrected_las(source, target, correction, chunk_points=3_000) == n - len(t[::997])
+    written = laspy.read(target)
+    again = tmp_path / "again.laz"  # the same points through laspy's own writer
+    with laspy.open(source) as r, laspy.open(again, mode="w", header=r.header, do_compress=True) as w:
+        for a in range(0, len(written.points), 3_000):
+            w.write_points(written.points[a:a + 3_000])
+    with open(target, "rb") as f, open(again, "rb") as g:
+        size = written.header.offset_to_point_data
+        assert f.read(size) == g.read(size)
+    assert written.header.number_of_points_by_return[1:5].min() > 0  # LAS 1.2 stores 5

@@ -116,3 +116,9 @@ def test_blocked_row_wise_correction_gives_the_bits_of_the_per_point_formula(lay
     assert (_interval_runs(np.array([t.min(), t.max()]), t) is None) == (order == "random")
     assert np.array_equal(fast, _grid_reference(correction, np.ascontiguousarray(xyz), t))
     assert np.abs(fast - xyz).max() > 0.01
+    # into a kept buffer (rows of a larger one, as corrected.laz reuses it chunk after chunk)
+    buffer = np.full((3, len(t) + 100), np.nan)
+    into = correction.apply_to_points(xyz, t, out=buffer[:, :len(t)])
+    assert np.shares_memory(into, buffer) and np.array_equal(into, fast)
+    with pytest.raises(ValueError, match="coordinate rows"):
+        correction.apply_to_points(xyz, t, out=buffer[:, :len(t) - 1])

@@ -38,8 +38,11 @@ class Shift:
     def __init__(self, delta: np.ndarray) -> None:
         self.delta = delta
 
-    def apply_to_points(self, xyz: np.ndarray, stamps_s: np.ndarray) -> np.ndarray:
-        return xyz + self.delta
+    def apply_to_points(self, xyz: np.ndarray, stamps_s: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        if out is None:
+            return xyz + self.delta
+        np.add(xyz.T, self.delta[:, None], out=out)
+        return out.T
 
 
 def georeferenced_las(path: Path, n: int = 5000) -> laspy.LasHeader:

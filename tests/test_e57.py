@@ -167,6 +167,20 @@ def test_chunked_equals_single_chunk(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert 10_001 in many_first
 
 
+def test_write_blocks_kept_from_scan_to_scan_change_no_byte(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The write blocks, kept from scan to scan and reused by scans of other sizes, give the bytes
+    of fresh blocks for every scan."""
+    monkeypatch.setattr(kinreg_e57_writer, "WRITE_BLOCK_POINTS", 4_000)
+    scans = [_scan(np.random.default_rng(4), k, n) for k, n in enumerate((10_001, 2_345, 7_000))]
+    (tmp_path / "kept").mkdir()
+    write_e57_sequence(tmp_path / "kept" / "sequence.e57", scans)
+    monkeypatch.setattr(kinreg_e57_writer.E57SequenceWriter, "_block",
+                        lambda self, name, dtype, capacity: np.full(capacity, np.nan, dtype))
+    (tmp_path / "fresh").mkdir()
+    write_e57_sequence(tmp_path / "fresh" / "sequence.e57", scans)
+    assert (tmp_path / "kept" / "sequence.e57").read_bytes() == (tmp_path / "fresh" / "sequence.e57").read_bytes()
+
+
 # --------------------------------------------------------------------------- independent readers
 
 

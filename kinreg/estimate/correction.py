@@ -144,7 +144,7 @@ class DriftCorrection:
             return xyz
         return self.without_jumps(query_s).apply(xyz)
 
-    def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray) -> FloatArray:
+    def apply_to_points(self, xyz: FloatArray, stamps_s: FloatArray, out: FloatArray | None = None) -> FloatArray:
         """Corrected object-frame points (n, 3) for points measured at times ``stamps_s`` (n,).
 
         ``x' = x + (R - I)(x - p) + delta`` with ``R - I``, ``p`` and ``delta`` evaluated on a grid of
@@ -156,7 +156,10 @@ class DriftCorrection:
         The result is in column-major (Fortran) order, its three columns contiguous: that is how it
         is computed, and what the callers read (a column per coordinate of a LAS record). ``xyz``
         is read by columns too; one in that order (``rows.T`` of coordinate rows (3, n)) is read
-        without gathering strided values."""
+        without gathering strided values. ``out`` (optional, coordinate rows (3, n), each row
+        contiguous) receives the result, which is then ``out.T``: a caller correcting chunk after
+        chunk keeps one buffer instead of a fresh array per chunk, whose pages the kernel would
+        map and zero each time."""
         if self.jump_steps is not None:
             xyz = self.without_jumps(stamps_s).apply(xyz)
         t = np.asarray(stamps_s, dtype=np.float64)
@@ -179,7 +182,10 @@ class DriftCorrection:
         # (31, len(grid) - 1): per interval the values at the node below, the slopes, the node's time
         nodes_rows = np.ascontiguousarray(np.hstack([table[:-1], slope, grid[:-1, None]]).T)
         x_rows = [xyz[:, i] for i in range(3)]
-        out = np.empty((3, len(t)))
+        if out is None:
+            out = np.empty((3, len(t)))
+        elif out.shape != (3, len(t)) or out.strides[1] != out.itemsize:
+            raise ValueError(f"out must be coordinate rows (3, {len(t)}), each contiguous")
         runs = _interval_runs(grid, t)
         for a in range(0, len(t), _POINT_BLOCK):
             tb = t[a:a + _POINT_BLOCK]

@@ -71,6 +71,7 @@ class E57SequenceWriter:
             raise OutputError("folder does not exist", folder)
         self.tmp_path = folder / f".{self.path.name}.tmp-{os.getpid()}"
         self.n_scans = 0
+        self._blocks: dict[str, NDArray[Any]] = {}
         self._imf: Any = None
         try:
             self._imf = libe57.ImageFile(str(self.tmp_path), "w")
@@ -211,12 +212,12 @@ class E57SequenceWriter:
         capacity = max(1, min(WRITE_BLOCK_POINTS, n))
         # name -> (block buffer, source values, offset subtracted block by block)
         columns: dict[str, tuple[NDArray[Any], NDArray[Any], float]] = {
-            name: (np.empty(capacity), xyz[:, i], 0.0) for i, name in enumerate(_CARTESIAN)
+            name: (self._block(name, np.float64, capacity), xyz[:, i], 0.0) for i, name in enumerate(_CARTESIAN)
         }
         if intensity is not None:
-            columns["intensity"] = (np.empty(capacity, np.float32), intensity, 0.0)
+            columns["intensity"] = (self._block("intensity", np.float32, capacity), intensity, 0.0)
         if stamps is not None:
-            columns["timeStamp"] = (np.empty(capacity), stamps, t_start or 0.0)
+            columns["timeStamp"] = (self._block("timeStamp", np.float64, capacity), stamps, t_start or 0.0)
         buffers = libe57.VectorSourceDestBuffer()
         for name, (buffer, _, _) in columns.items():
             buffers.append(libe57.SourceDestBuffer(imf, name, buffer, capacity, True, True))
@@ -235,6 +236,15 @@ class E57SequenceWriter:
                 writer.close()
             raise
         writer.close()
+
+    def _block(self, name: str, dtype: type[np.floating[Any]], capacity: int) -> NDArray[Any]:
+        """The write block of column ``name``, ``capacity`` values: one buffer of
+        :data:`WRITE_BLOCK_POINTS` kept from scan to scan (a fresh one per scan costs page faults
+        and zeroing of every page it fills)."""
+        buffer = self._blocks.get(name)
+        if buffer is None or len(buffer) < capacity:
+            buffer = self._blocks[name] = np.empty(max(WRITE_BLOCK_POINTS, capacity), dtype)
+        return buffer[:capacity]
 
     def close(self) -> None:
         """Finish the file and move it to its final name. Safe to call twice.

@@ -124,12 +124,14 @@ class CloudViews:
         start = time.thread_time()
         if self.heights is None:
             self.heights = choose_heights(xyz_before[::7, 2], self.config.section_band_m)
-        time01 = ((np.asarray(stamps_s, dtype=np.float64) - self.t0_s) / self.duration_s).astype(np.float32)
-        # The rasters in blocks whose temporaries stay in the cache (fresh arrays of a whole chunk
-        # cost more than the arithmetic: the kernel maps and zeroes their pages).
-        for a in range(0, len(time01), BLOCK_POINTS):
+        stamps_s = np.asarray(stamps_s, dtype=np.float64)
+        # The rasters in blocks whose temporaries (the times in [0, 1] among them) stay in the cache
+        # (fresh arrays of a whole chunk cost more than the arithmetic: the kernel maps and zeroes
+        # their pages).
+        for a in range(0, len(stamps_s), BLOCK_POINTS):
             block = slice(a, a + BLOCK_POINTS)
-            self._add_to_rasters(xyz_before[block], xyz_after[block], time01[block])
+            time01 = ((stamps_s[block] - self.t0_s) / self.duration_s).astype(np.float32)
+            self._add_to_rasters(xyz_before[block], xyz_after[block], time01)
         stride = self.thickness_stride
         for which, xyz in (("before", xyz_before), ("after", xyz_after)):
             self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
