@@ -126,13 +126,62 @@ def point_to_plane_rms(run, xyz_iter) -> float:
     return float(np.sqrt(sq / n))
 
 
+def station_errors(stations_csv: Path, truth_path: Path, run_path: Path) -> dict:
+    """The adjusted stations of ``stations_csv`` against the true trajectory: errors after a rigid
+    fit, in the datum, relative to the datum station, and normalised by the reported sigmas."""
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.report.json import rigid_fit
+
+    st = read_stations(stations_csv)
+    truth = read_trajectory(truth_path)
+    true_xyz = truth.pose_at(st["t"]).t_xyz
+    adj = np.column_stack([st["x"], st["y"], st["z"]])
+    initial_xyz = read_trajectory(run_path).pose_at(st["t"]).t_xyz
+    R, t = rigid_fit(adj, true_xyz)
+    err_fit = np.linalg.norm(adj @ R.T + t - true_xyz, axis=1) * 1000
+    err_datum = (adj - true_xyz) * 1000
+    R0, t0_ = rigid_fit(initial_xyz, true_xyz)
+    err_initial_fit = np.linalg.norm(initial_xyz @ R0.T + t0_ - true_xyz, axis=1) * 1000
+    sig = np.column_stack([st["sx_mm"], st["sy_mm"], st["sz_mm"]])
+    free = sig.max(axis=1) > 0
+    # The sigmas are relative to the datum: the first station holds its sensor pose at the
+    # trajectory's value, which carries the run's drift at that moment. The error they describe
+    # is the adjusted position's against the truth moved rigidly so that the datum station's true
+    # pose falls on the pose it was held at (where the datum is one held station; else absolute).
+    err_relative = err_datum
+    if np.count_nonzero(~free) == 1:
+        k = int(np.flatnonzero(~free)[0])
+        held = read_trajectory(run_path).pose_at(st["t"][[k]])
+        to_datum = held.compose(truth.pose_at(st["t"][[k]]).inverse())
+        err_relative = (adj - to_datum.apply(true_xyz)) * 1000
+    z = err_relative[free] / sig[free]
+    z_absolute = err_datum[free] / sig[free]
+    return {
+        "stations": len(adj),
+        "position_error_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_fit**2))), "max": float(err_fit.max())},
+        "position_error_input_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_initial_fit**2))),
+                                                    "max": float(err_initial_fit.max())},
+        "position_error_in_datum_mm": {"rms": float(np.sqrt(np.mean(np.sum(err_datum**2, axis=1)))),
+                                       "max": float(np.linalg.norm(err_datum, axis=1).max())},
+        "reported_sigma_3d_mm": {"rms": float(np.sqrt(np.mean(st["s3d_mm"][free] ** 2))),
+                                 "max": float(st["s3d_mm"].max())},
+        "position_error_relative_to_datum_mm": {"rms": float(np.sqrt(np.mean(np.sum(err_relative**2, axis=1)))),
+                                                "max": float(np.linalg.norm(err_relative, axis=1).max())},
+        "normalised_error_rms": float(np.sqrt(np.mean(z**2))),
+        "normalised_error_rms_per_axis_absolute": np.sqrt(np.mean(z_absolute**2, axis=0)).tolist(),
+        "normalised_error_rms_per_axis": np.sqrt(np.mean(z**2, axis=0)).tolist(),
+        "normalised_error_ms_per_axis": np.mean(z**2, axis=0).tolist(),
+        "network_rotation_mdeg": float(np.degrees(np.linalg.norm(_rotvec(R))) * 1000),
+        "share_within_3_sigma": float(np.mean(np.abs(z) < 3)),
+    }
+
+
 def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Path | None = None,
              drift_model: str | None = None, magnitude: str | None = None) -> dict:
     import laspy
 
     from kinreg.config import load_config
     from kinreg.io.trajectory import read_trajectory
-    from kinreg.report.json import rigid_fit
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import simulate_run
@@ -149,30 +198,9 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
                       load_config(config_path), overwrite=True)
     wall = time.perf_counter() - t0
 
-    st = read_stations(workdir / "out" / "stations.csv")
+    stations = station_errors(workdir / "out" / "stations.csv", data / "truth_trajectory.txt",
+                              data / "run_trajectory.txt")
     truth = read_trajectory(data / "truth_trajectory.txt")
-    true_xyz = truth.pose_at(st["t"]).t_xyz
-    adj = np.column_stack([st["x"], st["y"], st["z"]])
-    initial_xyz = read_trajectory(data / "run_trajectory.txt").pose_at(st["t"]).t_xyz
-    R, t = rigid_fit(adj, true_xyz)
-    err_fit = np.linalg.norm(adj @ R.T + t - true_xyz, axis=1) * 1000
-    err_datum = (adj - true_xyz) * 1000
-    R0, t0_ = rigid_fit(initial_xyz, true_xyz)
-    err_initial_fit = np.linalg.norm(initial_xyz @ R0.T + t0_ - true_xyz, axis=1) * 1000
-    sig = np.column_stack([st["sx_mm"], st["sy_mm"], st["sz_mm"]])
-    free = sig.max(axis=1) > 0
-    # The sigmas are relative to the datum: the first station holds its sensor pose at the
-    # trajectory's value, which carries the run's drift at that moment. The error they describe
-    # is the adjusted position's against the truth moved rigidly so that the datum station's true
-    # pose falls on the pose it was held at (where the datum is one held station; else absolute).
-    err_relative = err_datum
-    if np.count_nonzero(~free) == 1:
-        k = int(np.flatnonzero(~free)[0])
-        held = read_trajectory(data / "run_trajectory.txt").pose_at(st["t"][[k]])
-        to_datum = held.compose(truth.pose_at(st["t"][[k]]).inverse())
-        err_relative = (adj - to_datum.apply(true_xyz)) * 1000
-    z = err_relative[free] / sig[free]
-    z_absolute = err_datum[free] / sig[free]
 
     # corrected cloud vs true planes, next to the true-trajectory cloud and the drifted input
     def corrected():
@@ -201,27 +229,13 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
     return {
         "scenario": name,
         "seed": cfg.seed,
-        "stations": len(adj),
+        "stations": stations["stations"],
         "links": summary.n_links,
         "sigma0": summary.sigma0,
         "drift_rates": drift,
         "global_test_passed": summary.global_test_passed,
-        "position_error_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_fit**2))), "max": float(err_fit.max())},
-        "position_error_input_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_initial_fit**2))),
-                                                    "max": float(err_initial_fit.max())},
-        "position_error_in_datum_mm": {"rms": float(np.sqrt(np.mean(np.sum(err_datum**2, axis=1)))),
-                                       "max": float(np.linalg.norm(err_datum, axis=1).max())},
-        "reported_sigma_3d_mm": {"rms": float(np.sqrt(np.mean(st["s3d_mm"][free] ** 2))),
-                                 "max": float(st["s3d_mm"].max())},
-        "position_error_relative_to_datum_mm": {"rms": float(np.sqrt(np.mean(np.sum(err_relative**2, axis=1)))),
-                                                "max": float(np.linalg.norm(err_relative, axis=1).max())},
-        "normalised_error_rms": float(np.sqrt(np.mean(z**2))),
-        "normalised_error_rms_per_axis_absolute": np.sqrt(np.mean(z_absolute**2, axis=0)).tolist(),
-        "normalised_error_rms_per_axis": np.sqrt(np.mean(z**2, axis=0)).tolist(),
-        "normalised_error_ms_per_axis": np.mean(z**2, axis=0).tolist(),
-        "network_rotation_mdeg": float(np.degrees(np.linalg.norm(_rotvec(R))) * 1000),
+        **{k: v for k, v in stations.items() if k != "stations"},
         "drift_model": cfg.drift.model.value, "magnitude": magnitude,
-        "share_within_3_sigma": float(np.mean(np.abs(z) < 3)),
         "cloud_point_to_plane_rms_mm": {"corrected": rms_corrected * 1000, "true_trajectory": rms_truth * 1000,
                                         "input": rms_input * 1000,
                                         "corrected_over_truth": rms_corrected / rms_truth},

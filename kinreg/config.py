@@ -122,6 +122,9 @@ class DriftConfig:
 class MatchingConfig:
     neighbour_depth: int = 4  # each scan is linked to this many successors in the sequence
     radius_m: float = 10.0  # and to any scan whose centre is this close (loop closures)
+    # At most this many loop-closure candidates a scan, spread over the passes through its radius
+    # (a long run passes every place dozens of times; 0: every scan within radius_m).
+    max_loop_pairs: int = dataclasses.field(default=40, metadata={"allow_zero": True})
     max_angle_deg: float = 2.0  # normal angle between candidate planes after the approximate transform
     max_offset_m: float = 0.10  # offset between candidate planes after the approximate transform
     min_overlap: float = 0.1  # overlapping share of the smaller extent

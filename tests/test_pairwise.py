@@ -5,7 +5,7 @@ from scipy import stats
 
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig
 from kinreg.estimate.drift import drift_sigmas
-from kinreg.estimate.matching import candidate_pairs, match_planes
+from kinreg.estimate.matching import candidate_pairs, chosen_partners, match_planes
 from kinreg.estimate.pairwise import adjust_pair
 from kinreg.geometry import Pose
 from kinreg.types import LinkStatus, PlaneMatch
@@ -146,6 +146,46 @@ def test_candidate_pairs_sequence_and_loop_closures():
     positions = np.array([[0, 0, 0], [5, 0, 0], [10, 0, 0], [15, 0, 0], [20, 0, 0], [0.5, 0.5, 0]], float)
     cfg = MatchingConfig(neighbour_depth=1, radius_m=2.0)
     assert candidate_pairs(positions, cfg) == [(0, 1), (0, 5), (1, 2), (2, 3), (3, 4), (4, 5)]
+
+
+def test_loop_candidates_are_thinned_over_the_passes_of_a_long_run():
+    """A path walked 30 times round the same square: every station has loop candidates in every
+    other pass. With a budget the candidate pairs are fewer and sequence neighbours all stay; under
+    the budget the candidates are those without one."""
+    laps, per_lap = 30, 16
+    angle = np.linspace(0.0, 2 * np.pi, per_lap, endpoint=False)
+    ring = np.column_stack([10 * np.cos(angle), 10 * np.sin(angle), np.zeros(per_lap)])
+    rng = np.random.default_rng(3)
+    positions = np.concatenate([ring + rng.normal(0.0, 0.3, ring.shape) for _ in range(laps)])
+    unlimited = candidate_pairs(positions, MatchingConfig(radius_m=8.0, max_loop_pairs=0))
+    thinned = candidate_pairs(positions, MatchingConfig(radius_m=8.0, max_loop_pairs=20))
+    loops = np.bincount(np.array([p for p in unlimited if p[1] - p[0] > 4]).ravel())
+    assert loops.min() > 60  # the budget binds everywhere
+    assert set(thinned) < set(unlimited) and len(thinned) < 0.5 * len(unlimited)
+    assert {(i, j) for i, j in unlimited if j - i <= 4} <= set(thinned)  # sequence neighbours all kept
+    short = positions[: 3 * per_lap]
+    assert candidate_pairs(short, MatchingConfig(radius_m=8.0, max_loop_pairs=20)) == \
+        candidate_pairs(short, MatchingConfig(radius_m=8.0, max_loop_pairs=0))
+
+
+def test_a_station_chooses_the_nearest_of_every_pass_before_a_second_of_any():
+    """Station 0 is passed once slowly (30 stations 0.5-0.8 m away) and by 10 quick passes (one
+    station each, 2-3 m away): with a budget of 20 it keeps every quick pass and 10 of the slow one,
+    where the 20 nearest would all be the slow pass's."""
+    far = lambda k: [100.0 + 10 * k, 0.0, 0.0]  # noqa: E731 (stations between the passes)
+    positions = [[0.0, 0.0, 0.0]] + [far(k) for k in range(5)]
+    slow = list(range(len(positions), len(positions) + 30))
+    positions += [[0.5 + 0.01 * k, 0.0, 0.0] for k in range(30)]
+    quick = []
+    for k in range(10):
+        positions.append(far(10 + k))
+        quick.append(len(positions))
+        positions.append([0.0, 2.0 + 0.1 * k, 0.0])
+    partners = np.array(slow + quick)
+    chosen = chosen_partners(np.array(positions), 0, partners, 20)
+    assert set(quick) <= set(chosen.tolist()) and len(chosen) == 20
+    assert set(chosen.tolist()) - set(quick) == set(slow[:10])  # the slow pass's 10 nearest
+    assert chosen_partners(np.array(positions), 0, partners, 50).tolist() == partners.tolist()
 
 
 def test_repeated_and_looped_matches_do_not_break_the_adjustment():

@@ -27,12 +27,52 @@ _AMBIGUITY_RATIO = 3.0
 
 def candidate_pairs(positions_xyz: FloatArray, config: MatchingConfig) -> list[tuple[int, int]]:
     """Pairs (i, j), i < j, of stations to link: sequence neighbours up to ``neighbour_depth``
-    apart, plus any stations whose centres are within ``radius_m``. Sorted."""
+    apart, plus stations whose centres are within ``radius_m`` (loop closures), of which each
+    station chooses at most ``max_loop_pairs`` (:func:`_thinned_loops`). Sorted."""
     n = len(positions_xyz)
-    pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + config.neighbour_depth + 1))}
+    depth = config.neighbour_depth
+    pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + depth + 1))}
     if n > 1 and config.radius_m > 0:
-        pairs |= {(min(a, b), max(a, b)) for a, b in cKDTree(positions_xyz).query_pairs(config.radius_m)}
+        near = cKDTree(positions_xyz).query_pairs(config.radius_m, output_type="ndarray")
+        loops = near[near[:, 1] - near[:, 0] > depth]
+        if config.max_loop_pairs > 0:
+            loops = _thinned_loops(positions_xyz, loops, config.max_loop_pairs)
+        pairs |= {(int(a), int(b)) for a, b in loops}
     return sorted(pairs)
+
+
+def _thinned_loops(positions_xyz: FloatArray, loops: np.ndarray, budget: int) -> np.ndarray:
+    """The loop pairs ``loops`` (m, 2), i < j, of which each station keeps at most ``budget``
+    (:func:`chosen_partners`). A pair stays where either of its stations keeps it."""
+    both = np.concatenate([loops, loops[:, ::-1]])
+    counts = np.bincount(both[:, 0], minlength=len(positions_xyz))
+    if counts.max(initial=0) <= budget:
+        return loops
+    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    kept: set[tuple[int, int]] = set()
+    for i in np.flatnonzero(counts):
+        chosen = chosen_partners(positions_xyz, int(i), both[starts[i]:starts[i + 1], 1], budget)
+        kept.update((min(int(i), j), max(int(i), j)) for j in chosen.tolist())
+    return np.array(sorted(kept), dtype=np.int64).reshape(-1, 2)
+
+
+def chosen_partners(positions_xyz: FloatArray, i: int, partners: np.ndarray, budget: int) -> np.ndarray:
+    """At most ``budget`` of station ``i``'s loop partners (sorted indices), spread over its
+    passes: the partners are split into passes (runs of consecutive stations) and taken round by
+    round, the nearest station of every pass (nearest pass first), then every pass's second
+    nearest, ... A station passed 30 times keeps a link into as many passes as it can, not 40 into
+    the slowest one."""
+    if len(partners) <= budget:
+        return partners
+    dist = np.linalg.norm(positions_xyz[partners] - positions_xyz[i], axis=1)
+    visit = np.concatenate([[0], np.cumsum(np.diff(partners) > 1)])
+    by_pass = np.lexsort((dist, visit))  # pass by pass, nearest first
+    first = np.flatnonzero(np.diff(visit[by_pass], prepend=-1))
+    rank = np.arange(len(partners)) - np.repeat(first, np.diff(np.append(first, len(partners))))
+    nearest_of_pass = np.minimum.reduceat(dist[by_pass], first)[visit[by_pass]]
+    order = np.lexsort((dist[by_pass], nearest_of_pass, rank))[:budget]
+    return np.sort(partners[by_pass[order]])
 
 
 def transform_planes(normals: FloatArray, d_m: FloatArray, T_i_j: Pose) -> tuple[FloatArray, FloatArray]:
