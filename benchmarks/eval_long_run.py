@@ -25,10 +25,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 
-def simulation(rate_divisor: float, drift_model: str | None):
+def simulation(rate_divisor: float, drift_model: str | None, seed: int = 1):
     import bench_scale
 
-    cfg = bench_scale.seed_like_config(235e6)
+    cfg = bench_scale.seed_like_config(235e6, seed)
     cfg = replace(cfg, sensor=replace(cfg.sensor, pulse_rate_hz=cfg.sensor.pulse_rate_hz / rate_divisor))
     if drift_model is not None:
         from kinreg.simulation.drift import DriftModel
@@ -42,6 +42,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True, help="folder of the run (generated when empty)")
     parser.add_argument("--rate-divisor", type=float, default=10.0)
     parser.add_argument("--drift-model", default=None, help="world, slam or gnss-ins (default: the simulator's)")
+    parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--config", nargs="+", default=["default="],
                         help="label=path of a kinreg config TOML (empty path: the defaults)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "long_run.json")
@@ -57,7 +58,7 @@ def main() -> None:
 
     data = args.data
     data.mkdir(parents=True, exist_ok=True)
-    cfg = simulation(args.rate_divisor, args.drift_model)
+    cfg = simulation(args.rate_divisor, args.drift_model, args.seed)
     traj, cloud = data / "run_trajectory.txt", data / "run_cloud.laz"
     generated = None
     if not cloud.exists():
@@ -80,7 +81,7 @@ def main() -> None:
                                                 "position_error_after_rigid_fit_mm", "normalised_error_rms_per_axis")}),
               flush=True)
     args.out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M"), "command": " ".join(sys.argv),
-                                    "generated": generated, "drift_model": cfg.drift.model.value,
+                                    "generated": generated, "drift_model": cfg.drift.model.value, "seed": cfg.seed,
                                     "duration_s": cfg.duration_s, "results": results}, indent=1) + "\n")
 
 
