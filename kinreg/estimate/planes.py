@@ -58,6 +58,7 @@ uneven walls).
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -95,6 +96,18 @@ _TRIM_SIGMAS = 3.0
 _DUPLICATE_ANGLE_RAD = np.radians(2.0)
 # Planes at a larger angle than this cross: points in the bands of both are ambiguous.
 _CROSSING_ANGLE_RAD = np.radians(10.0)
+# The shoulder of a plane's band: points between the band and this many times the band away. A
+# flat surface leaves only its noise tail there; a surface that leaves the plane at an edge inside
+# the band (a door's jamb or soffit, a window's reveal: too small to be planes of their own) goes
+# on through it. Where a cell of the plane (``_SHOULDER_CELL_M``) holds more shoulder points than
+# the noise tail explains, its band points are not the plane's: they would pull it into the wall
+# by millimetres, one-sidedly (a door passage's scan, 5 mm at 0.4 m).
+_SHOULDER_BANDS = 3.0
+_SHOULDER_CELL_M = 0.05
+# The test: more shoulder points in a cell than the expected tail plus this many of its Poisson
+# sigmas, and at least _SHOULDER_MIN_POINTS.
+_SHOULDER_SIGMAS = 3.0
+_SHOULDER_MIN_POINTS = 4
 # The first full-resolution pass collects points within (1 + this) times the band, so that the
 # refitted planes (mm away from the RANSAC planes) find all of theirs in the second pass.
 _REASSIGN_MARGIN = 0.5
@@ -144,7 +157,9 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
     # plane would cut one side's noise tail). The first pass collects a wider band, so the second
     # only needs to re-check each point against its own plane.
     band = config.refit_distance_m
-    labels = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN))
+    shoulders: list[IntArray] = []
+    labels = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN),
+                             shoulder_m=_SHOULDER_BANDS * band, shoulders=shoulders)
     fitted: list[_Fit] = []
     for k, idx in enumerate(_groups(labels, len(models))):
         if len(idx) < config.min_points:
@@ -157,6 +172,10 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
         # np.compress: a boolean index along the second axis is about five times slower.
         n, d = _refit(np.compress(inliers, group, axis=1))
         group = np.compress(_within(n, d, group, band), group, axis=1)
+        flat = _flat_cells(group, rows.take(shoulders[k], axis=1), n, d, band)
+        if not flat.all():
+            group = np.compress(flat, group, axis=1)
+            n, d = _refit(group) if group.shape[1] >= 3 else (n, d)
         if group.shape[1] < config.min_points:
             continue
         for patch in _split_patches(group, n, config):
@@ -594,7 +613,8 @@ def _dense_support(points: FloatArray, normal: FloatArray, cell_m: float, filled
 
 
 def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray, float]],
-                    band_m: float, collect_m: float) -> IntArray:
+                    band_m: float, collect_m: float, shoulder_m: float = 0.0,
+                    shoulders: list[IntArray] | None = None) -> IntArray:
     """Index of the nearest plane within ``collect_m`` of every point, ``len(models)`` for none.
 
     A point within ``band_m`` of two planes that cross (the strip along a wall-floor edge) is
@@ -604,6 +624,8 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     float32 is enough to choose the plane (micrometres at 30 m); the fits use float64. The float32
     products go over every point in one call: OpenBLAS gives a row other bits in an array of
     another length, so a pass over nearby points only would move points across the band's edge.
+    With ``shoulders`` (a list, filled in model order): the indices of each model's points between
+    ``band_m`` and ``shoulder_m`` away (:func:`_flat_cells`).
     """
     none = len(models)
     label = np.full(len(points32), none, dtype=np.int64)
@@ -619,8 +641,15 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
         np.matmul(points32, n.astype(np.float32), out=r)
         r -= np.float32(d)
         np.abs(r, out=r)
-        idx = np.flatnonzero(r < collect_m)
-        rk = r[idx]
+        if shoulders is not None:
+            near = np.flatnonzero(r < max(collect_m, shoulder_m))
+            r_near = r[near]
+            shoulders.append(near[r_near >= band_m])
+            inside = r_near < collect_m
+            idx, rk = near[inside], r_near[inside]
+        else:
+            idx = np.flatnonzero(r < collect_m)
+            rk = r[idx]
         best_k = best[idx]
         if k:  # the first plane crosses none before it
             both = (rk < band_m) & (best_k < band_m) & crossing[k, label[idx]]
@@ -647,6 +676,42 @@ def _refit(rows: FloatArray) -> tuple[FloatArray, float]:
     c = rows.mean(axis=1)
     _, V = np.linalg.eigh(_scatter(rows - c[:, None]))
     return V[:, 0], float(V[:, 0] @ c)
+
+
+def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: float, band_m: float) -> NDArray[np.bool_]:
+    """Which of a plane's band points ``group`` (3, N) lie where the surface is the plane: not in a
+    cell of the plane (``_SHOULDER_CELL_M``) through which the scan's points go on beyond the band
+    (``shoulder`` (3, M): points of the plane's shoulder, re-tested against the refitted plane
+    ``normal``, ``d``). A flat surface leaves only its noise tail in the shoulder: with the band's
+    robust sigma, the expected tail count of a cell is its band count times the tail's share."""
+    keep = np.ones(group.shape[1], dtype=bool)
+    if shoulder.shape[1] == 0 or group.shape[1] == 0:
+        return keep
+    r_s = np.abs(normal @ shoulder - d)
+    shoulder = np.compress((r_s >= band_m) & (r_s < _SHOULDER_BANDS * band_m), shoulder, axis=1)
+    if shoulder.shape[1] < _SHOULDER_MIN_POINTS:
+        return keep
+    r = normal @ group - d
+    sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
+    # Share of a Gaussian's points in the shoulder against its share inside the band.
+    inside, outside = (math.erf(band_m / (sigma * math.sqrt(2.0))),
+                       math.erf(_SHOULDER_BANDS * band_m / (sigma * math.sqrt(2.0))))
+    tail = (outside - inside) / max(inside, 1e-12)
+    basis = tangent_basis(normal)
+    st_g, st_s = basis @ group, basis @ shoulder
+    lower = np.minimum(st_g.min(axis=1), st_s.min(axis=1))
+    ij_g = np.floor((st_g - lower[:, None]) / _SHOULDER_CELL_M).astype(np.int64)
+    ij_s = np.floor((st_s - lower[:, None]) / _SHOULDER_CELL_M).astype(np.int64)
+    width = int(max(ij_g[1].max(), ij_s[1].max())) + 1
+    cell_g, cell_s = ij_g[0] * width + ij_g[1], ij_s[0] * width + ij_s[1]
+    cells, inverse = np.unique(np.concatenate([cell_g, cell_s]), return_inverse=True)
+    n_g = np.bincount(inverse[: len(cell_g)], minlength=len(cells))
+    n_s = np.bincount(inverse[len(cell_g):], minlength=len(cells))
+    expected = n_g * tail
+    rough = (n_s >= _SHOULDER_MIN_POINTS) & (n_s > expected + _SHOULDER_SIGMAS * np.sqrt(expected))
+    if rough.any():
+        keep = ~rough[inverse[: len(cell_g)]]
+    return keep
 
 
 class _Patch:
