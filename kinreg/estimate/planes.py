@@ -692,7 +692,7 @@ def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: 
     if shoulder.shape[1] < _SHOULDER_MIN_POINTS:
         return keep
     r = normal @ group - d
-    sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-6)
+    sigma = max(float(np.sqrt(np.dot(r, r) / len(r))), 1e-6)  # the band's RMS: enough for a tail
     # Share of a Gaussian's points in the shoulder against its share inside the band.
     inside, outside = (math.erf(band_m / (sigma * math.sqrt(2.0))),
                        math.erf(_SHOULDER_BANDS * band_m / (sigma * math.sqrt(2.0))))
@@ -700,17 +700,27 @@ def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: 
     basis = tangent_basis(normal)
     st_g, st_s = basis @ group, basis @ shoulder
     lower = np.minimum(st_g.min(axis=1), st_s.min(axis=1))
-    ij_g = np.floor((st_g - lower[:, None]) / _SHOULDER_CELL_M).astype(np.int64)
-    ij_s = np.floor((st_s - lower[:, None]) / _SHOULDER_CELL_M).astype(np.int64)
-    width = int(max(ij_g[1].max(), ij_s[1].max())) + 1
-    cell_g, cell_s = ij_g[0] * width + ij_g[1], ij_s[0] * width + ij_s[1]
-    cells, inverse = np.unique(np.concatenate([cell_g, cell_s]), return_inverse=True)
-    n_g = np.bincount(inverse[: len(cell_g)], minlength=len(cells))
-    n_s = np.bincount(inverse[len(cell_g):], minlength=len(cells))
+    extent = np.maximum(st_g.max(axis=1), st_s.max(axis=1)) - lower
+    cell_m = _SHOULDER_CELL_M
+    while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:  # a stray far point: coarser cells
+        cell_m *= 2.0
+    shape = (int(extent[0] / cell_m) + 1, int(extent[1] / cell_m) + 1)
+    st_g -= lower[:, None]
+    st_s -= lower[:, None]
+    # Non-negative: truncation is the floor.
+    cell_g = _truncated_rows(st_g / cell_m, max(shape))
+    cell_s = _truncated_rows(st_s / cell_m, max(shape))
+    flat_g = cell_g[0].astype(np.int64) * shape[1] + cell_g[1]
+    flat_s = cell_s[0].astype(np.int64) * shape[1] + cell_s[1]
+    n_s = np.bincount(flat_s, minlength=shape[0] * shape[1])
+    candidate = n_s >= _SHOULDER_MIN_POINTS
+    if not candidate.any():
+        return keep
+    n_g = np.bincount(flat_g, minlength=shape[0] * shape[1])
     expected = n_g * tail
-    rough = (n_s >= _SHOULDER_MIN_POINTS) & (n_s > expected + _SHOULDER_SIGMAS * np.sqrt(expected))
+    rough = candidate & (n_s > expected + _SHOULDER_SIGMAS * np.sqrt(expected))
     if rough.any():
-        keep = ~rough[inverse[: len(cell_g)]]
+        keep = ~rough[flat_g]
     return keep
 
 
