@@ -20,7 +20,11 @@ Every scan (static or quasi-static) is searched for planar patches in its own fr
    refit every plane by least squares and re-select its points around the refitted plane (a
    band around a slightly tilted plane would cut one side's noise tail). A point within the band
    of two crossing planes (the strip along a wall-floor edge) belongs to neither: it would pull
-   the plane it is not on, and along a door's threshold it would bridge the opening.
+   the plane it is not on, and along a door's threshold it would bridge the opening. Nor do the
+   band points of a cell of the plane (5 cm) through which the scan's points go on beyond the
+   band (more than the noise tail explains, :func:`_flat_cells`): a door's jamb and soffit or a
+   window's reveal is too small to be a plane of its own, and its first 3 cm would pull the wall
+   into itself (by 2 mm seen from 0.2 m in front of a door, 5 mm in a door passage's window).
 4. **Split** each plane's inliers into connected patches on a 2D occupancy grid in the plane
    (``patch_cell_m``, 8-connectivity; cells with fewer than ``patch_min_cell_points`` points do
    not connect): the wall in front of a door and the wall behind it are two patches. Patches
@@ -58,6 +62,7 @@ uneven walls).
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 import numpy as np
@@ -95,6 +100,18 @@ _TRIM_SIGMAS = 3.0
 _DUPLICATE_ANGLE_RAD = np.radians(2.0)
 # Planes at a larger angle than this cross: points in the bands of both are ambiguous.
 _CROSSING_ANGLE_RAD = np.radians(10.0)
+# The shoulder of a plane's band: points between the band and this many times the band away. A
+# flat surface leaves only its noise tail there; a surface that leaves the plane at an edge inside
+# the band (a door's jamb or soffit, a window's reveal: too small to be planes of their own) goes
+# on through it. Where a cell of the plane (``_SHOULDER_CELL_M``) holds more shoulder points than
+# the noise tail explains, its band points are not the plane's: they would pull it into the wall
+# by millimetres, one-sidedly (a door passage's scan, 5 mm at 0.4 m).
+_SHOULDER_BANDS = 3.0
+_SHOULDER_CELL_M = 0.05
+# The test: more shoulder points in a cell than the expected tail plus this many of its Poisson
+# sigmas, and at least _SHOULDER_MIN_POINTS.
+_SHOULDER_SIGMAS = 3.0
+_SHOULDER_MIN_POINTS = 4
 # The first full-resolution pass collects points within (1 + this) times the band, so that the
 # refitted planes (mm away from the RANSAC planes) find all of theirs in the second pass.
 _REASSIGN_MARGIN = 0.5
@@ -144,7 +161,9 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
     # plane would cut one side's noise tail). The first pass collects a wider band, so the second
     # only needs to re-check each point against its own plane.
     band = config.refit_distance_m
-    labels = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN))
+    shoulders: list[IntArray] = []
+    labels = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN),
+                             shoulder_m=_SHOULDER_BANDS * band, shoulders=shoulders)
     fitted: list[_Fit] = []
     for k, idx in enumerate(_groups(labels, len(models))):
         if len(idx) < config.min_points:
@@ -157,6 +176,10 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
         # np.compress: a boolean index along the second axis is about five times slower.
         n, d = _refit(np.compress(inliers, group, axis=1))
         group = np.compress(_within(n, d, group, band), group, axis=1)
+        flat = _flat_cells(group, rows.take(shoulders[k], axis=1), n, d, band)
+        if not flat.all():
+            group = np.compress(flat, group, axis=1)
+            n, d = _refit(group) if group.shape[1] >= 3 else (n, d)
         if group.shape[1] < config.min_points:
             continue
         for patch in _split_patches(group, n, config):
@@ -594,7 +617,8 @@ def _dense_support(points: FloatArray, normal: FloatArray, cell_m: float, filled
 
 
 def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray, float]],
-                    band_m: float, collect_m: float) -> IntArray:
+                    band_m: float, collect_m: float, shoulder_m: float = 0.0,
+                    shoulders: list[IntArray] | None = None) -> IntArray:
     """Index of the nearest plane within ``collect_m`` of every point, ``len(models)`` for none.
 
     A point within ``band_m`` of two planes that cross (the strip along a wall-floor edge) is
@@ -604,6 +628,8 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     float32 is enough to choose the plane (micrometres at 30 m); the fits use float64. The float32
     products go over every point in one call: OpenBLAS gives a row other bits in an array of
     another length, so a pass over nearby points only would move points across the band's edge.
+    With ``shoulders`` (a list, filled in model order): the indices of each model's points between
+    ``band_m`` and ``shoulder_m`` away (:func:`_flat_cells`).
     """
     none = len(models)
     label = np.full(len(points32), none, dtype=np.int64)
@@ -619,8 +645,15 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
         np.matmul(points32, n.astype(np.float32), out=r)
         r -= np.float32(d)
         np.abs(r, out=r)
-        idx = np.flatnonzero(r < collect_m)
-        rk = r[idx]
+        if shoulders is not None:
+            near = np.flatnonzero(r < max(collect_m, shoulder_m))
+            r_near = r[near]
+            shoulders.append(near[r_near >= band_m])
+            inside = r_near < collect_m
+            idx, rk = near[inside], r_near[inside]
+        else:
+            idx = np.flatnonzero(r < collect_m)
+            rk = r[idx]
         best_k = best[idx]
         if k:  # the first plane crosses none before it
             both = (rk < band_m) & (best_k < band_m) & crossing[k, label[idx]]
@@ -647,6 +680,53 @@ def _refit(rows: FloatArray) -> tuple[FloatArray, float]:
     c = rows.mean(axis=1)
     _, V = np.linalg.eigh(_scatter(rows - c[:, None]))
     return V[:, 0], float(V[:, 0] @ c)
+
+
+def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: float,
+                band_m: float) -> NDArray[np.bool_]:
+    """Which of a plane's band points ``group`` (3, N) lie where the surface is the plane: not in a
+    cell of the plane (``_SHOULDER_CELL_M``) through which the scan's points go on beyond the band
+    (``shoulder`` (3, M): points of the plane's shoulder, re-tested against the refitted plane
+    ``normal``, ``d``). A flat surface leaves only its noise tail in the shoulder: with the band's
+    robust sigma, the expected tail count of a cell is its band count times the tail's share."""
+    keep = np.ones(group.shape[1], dtype=bool)
+    if shoulder.shape[1] == 0 or group.shape[1] == 0:
+        return keep
+    r_s = np.abs(normal @ shoulder - d)
+    shoulder = np.compress((r_s >= band_m) & (r_s < _SHOULDER_BANDS * band_m), shoulder, axis=1)
+    if shoulder.shape[1] < _SHOULDER_MIN_POINTS:
+        return keep
+    r = normal @ group - d
+    sigma = max(float(np.sqrt(np.dot(r, r) / len(r))), 1e-6)  # the band's RMS: enough for a tail
+    # Share of a Gaussian's points in the shoulder against its share inside the band.
+    inside, outside = (math.erf(band_m / (sigma * math.sqrt(2.0))),
+                       math.erf(_SHOULDER_BANDS * band_m / (sigma * math.sqrt(2.0))))
+    tail = (outside - inside) / max(inside, 1e-12)
+    basis = tangent_basis(normal)
+    st_g, st_s = basis @ group, basis @ shoulder
+    lower = np.minimum(st_g.min(axis=1), st_s.min(axis=1))
+    extent = np.maximum(st_g.max(axis=1), st_s.max(axis=1)) - lower
+    cell_m = _SHOULDER_CELL_M
+    while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:  # a stray far point: coarser cells
+        cell_m *= 2.0
+    shape = (int(extent[0] / cell_m) + 1, int(extent[1] / cell_m) + 1)
+    st_g -= lower[:, None]
+    st_s -= lower[:, None]
+    # Non-negative: truncation is the floor.
+    cell_g = _truncated_rows(st_g / cell_m, max(shape))
+    cell_s = _truncated_rows(st_s / cell_m, max(shape))
+    flat_g = cell_g[0].astype(np.int64) * shape[1] + cell_g[1]
+    flat_s = cell_s[0].astype(np.int64) * shape[1] + cell_s[1]
+    n_s = np.bincount(flat_s, minlength=shape[0] * shape[1])
+    candidate = n_s >= _SHOULDER_MIN_POINTS
+    if not candidate.any():
+        return keep
+    n_g = np.bincount(flat_g, minlength=shape[0] * shape[1])
+    expected = n_g * tail
+    rough = candidate & (n_s > expected + _SHOULDER_SIGMAS * np.sqrt(expected))
+    if rough.any():
+        keep = ~rough[flat_g]
+    return keep
 
 
 class _Patch:
