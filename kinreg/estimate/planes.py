@@ -688,7 +688,9 @@ def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: 
     cell of the plane (``_SHOULDER_CELL_M``) through which the scan's points go on beyond the band
     (``shoulder`` (3, M): points of the plane's shoulder, re-tested against the refitted plane
     ``normal``, ``d``). A flat surface leaves only its noise tail in the shoulder: with the band's
-    robust sigma, the expected tail count of a cell is its band count times the tail's share."""
+    RMS as the noise sigma, the expected tail count of a cell is its band count times the tail's
+    share of a Gaussian (a jamb's share in the band inflates that sigma a little: the test errs
+    towards keeping points)."""
     keep = np.ones(group.shape[1], dtype=bool)
     if shoulder.shape[1] == 0 or group.shape[1] == 0:
         return keep
