@@ -126,17 +126,16 @@ def point_to_plane_rms(run, xyz_iter) -> float:
     return float(np.sqrt(sq / n))
 
 
-def station_errors(stations_csv: Path, truth_path: Path, run_path: Path) -> dict:
-    """The adjusted stations of ``stations_csv`` against the true trajectory: errors after a rigid
-    fit, in the datum, relative to the datum station, and normalised by the reported sigmas."""
-    from kinreg.io.trajectory import read_trajectory
+def station_errors(stations_csv: Path, truth, drifted) -> dict:
+    """The adjusted stations of ``stations_csv`` against the ``truth`` trajectory (``drifted``: the
+    run's own): errors after a rigid fit, in the datum, relative to the datum station, and
+    normalised by the reported sigmas."""
     from kinreg.report.json import rigid_fit
 
     st = read_stations(stations_csv)
-    truth = read_trajectory(truth_path)
     true_xyz = truth.pose_at(st["t"]).t_xyz
     adj = np.column_stack([st["x"], st["y"], st["z"]])
-    initial_xyz = read_trajectory(run_path).pose_at(st["t"]).t_xyz
+    initial_xyz = drifted.pose_at(st["t"]).t_xyz
     R, t = rigid_fit(adj, true_xyz)
     err_fit = np.linalg.norm(adj @ R.T + t - true_xyz, axis=1) * 1000
     err_datum = (adj - true_xyz) * 1000
@@ -151,7 +150,7 @@ def station_errors(stations_csv: Path, truth_path: Path, run_path: Path) -> dict
     err_relative = err_datum
     if np.count_nonzero(~free) == 1:
         k = int(np.flatnonzero(~free)[0])
-        held = read_trajectory(run_path).pose_at(st["t"][[k]])
+        held = drifted.pose_at(st["t"][[k]])
         to_datum = held.compose(truth.pose_at(st["t"][[k]]).inverse())
         err_relative = (adj - to_datum.apply(true_xyz)) * 1000
     z = err_relative[free] / sig[free]
@@ -198,9 +197,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
                       load_config(config_path), overwrite=True)
     wall = time.perf_counter() - t0
 
-    stations = station_errors(workdir / "out" / "stations.csv", data / "truth_trajectory.txt",
-                              data / "run_trajectory.txt")
     truth = read_trajectory(data / "truth_trajectory.txt")
+    stations = station_errors(workdir / "out" / "stations.csv", truth, read_trajectory(data / "run_trajectory.txt"))
 
     # corrected cloud vs true planes, next to the true-trajectory cloud and the drifted input
     def corrected():

@@ -52,6 +52,7 @@ def main() -> None:
     from eval_accuracy import station_errors
 
     from kinreg.config import load_config
+    from kinreg.io.trajectory import read_trajectory
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation.files import write_trajectory_geoslam
     from kinreg.simulation.run import simulate_run
@@ -65,6 +66,7 @@ def main() -> None:
         traj, cloud, generated = bench_scale.generate(data, 0, 2, config=cfg)
     if not (data / "truth_trajectory.txt").exists():
         write_trajectory_geoslam(data / "truth_trajectory.txt", simulate_run(cfg).truth)
+    truth, drifted = read_trajectory(data / "truth_trajectory.txt"), read_trajectory(traj)
     results = []
     for item in args.config:
         label, _, path = item.partition("=")
@@ -75,7 +77,7 @@ def main() -> None:
         row = {"label": label, "config": path or "defaults", "links": summary.n_links, "sigma0": summary.sigma0,
                "global_test_passed": summary.global_test_passed, "process_wall_s": wall,
                "timings_s": summary.timings_s,
-               **station_errors(data / f"out_{label}" / "stations.csv", data / "truth_trajectory.txt", traj)}
+               **station_errors(data / f"out_{label}" / "stations.csv", truth, drifted)}
         results.append(row)
         print(json.dumps({k: row[k] for k in ("label", "links", "sigma0", "timings_s",
                                                 "position_error_after_rigid_fit_mm", "normalised_error_rms_per_axis")}),

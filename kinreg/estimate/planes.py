@@ -161,9 +161,8 @@ def detect_planes(scan: Scan, config: PlanesConfig) -> tuple[Plane, ...]:
     # plane would cut one side's noise tail). The first pass collects a wider band, so the second
     # only needs to re-check each point against its own plane.
     band = config.refit_distance_m
-    shoulders: list[IntArray] = []
-    labels = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN),
-                             shoulder_m=_SHOULDER_BANDS * band, shoulders=shoulders)
+    labels, shoulders = _assign_nearest(points.astype(np.float32), models, band, band * (1 + _REASSIGN_MARGIN),
+                                        _SHOULDER_BANDS * band)
     fitted: list[_Fit] = []
     for k, idx in enumerate(_groups(labels, len(models))):
         if len(idx) < config.min_points:
@@ -617,8 +616,7 @@ def _dense_support(points: FloatArray, normal: FloatArray, cell_m: float, filled
 
 
 def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray, float]],
-                    band_m: float, collect_m: float, shoulder_m: float = 0.0,
-                    shoulders: list[IntArray] | None = None) -> IntArray:
+                    band_m: float, collect_m: float, shoulder_m: float) -> tuple[IntArray, list[IntArray]]:
     """Index of the nearest plane within ``collect_m`` of every point, ``len(models)`` for none.
 
     A point within ``band_m`` of two planes that cross (the strip along a wall-floor edge) is
@@ -628,15 +626,16 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
     float32 is enough to choose the plane (micrometres at 30 m); the fits use float64. The float32
     products go over every point in one call: OpenBLAS gives a row other bits in an array of
     another length, so a pass over nearby points only would move points across the band's edge.
-    With ``shoulders`` (a list, filled in model order): the indices of each model's points between
-    ``band_m`` and ``shoulder_m`` away (:func:`_flat_cells`).
+    Also returns, per model, the indices of its points between ``band_m`` and ``shoulder_m`` away
+    (its shoulder, :func:`_flat_cells`).
     """
     none = len(models)
     label = np.full(len(points32), none, dtype=np.int64)
     best = np.full(len(points32), np.inf, dtype=np.float32)
     ambiguous = np.zeros(len(points32), dtype=bool)
+    shoulders: list[IntArray] = []
     if not models:
-        return label
+        return label, shoulders
     normals = np.array([n for n, _ in models])
     crossing = np.abs(normals @ normals.T) < np.cos(_CROSSING_ANGLE_RAD)
     crossing = np.concatenate([crossing, np.zeros((none, 1), dtype=bool)], axis=1)  # column: no plane
@@ -645,15 +644,11 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
         np.matmul(points32, n.astype(np.float32), out=r)
         r -= np.float32(d)
         np.abs(r, out=r)
-        if shoulders is not None:
-            near = np.flatnonzero(r < max(collect_m, shoulder_m))
-            r_near = r[near]
-            shoulders.append(near[r_near >= band_m])
-            inside = r_near < collect_m
-            idx, rk = near[inside], r_near[inside]
-        else:
-            idx = np.flatnonzero(r < collect_m)
-            rk = r[idx]
+        near = np.flatnonzero(r < max(collect_m, shoulder_m))
+        r_near = r[near]
+        shoulders.append(near[r_near >= band_m])
+        inside = r_near < collect_m
+        idx, rk = near[inside], r_near[inside]
         best_k = best[idx]
         if k:  # the first plane crosses none before it
             both = (rk < band_m) & (best_k < band_m) & crossing[k, label[idx]]
@@ -663,7 +658,7 @@ def _assign_nearest(points32: NDArray[np.float32], models: list[tuple[FloatArray
         best[idx] = rk[closer]
         label[idx] = k
     label[ambiguous] = none
-    return label
+    return label, shoulders
 
 
 def _groups(labels: IntArray, n_groups: int) -> list[IntArray]:
@@ -704,21 +699,8 @@ def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: 
     inside, outside = (math.erf(band_m / (sigma * math.sqrt(2.0))),
                        math.erf(_SHOULDER_BANDS * band_m / (sigma * math.sqrt(2.0))))
     tail = (outside - inside) / max(inside, 1e-12)
-    basis = tangent_basis(normal)
-    st_g, st_s = basis @ group, basis @ shoulder
-    lower = np.minimum(st_g.min(axis=1), st_s.min(axis=1))
-    extent = np.maximum(st_g.max(axis=1), st_s.max(axis=1)) - lower
-    cell_m = _SHOULDER_CELL_M
-    while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:  # a stray far point: coarser cells
-        cell_m *= 2.0
-    shape = (int(extent[0] / cell_m) + 1, int(extent[1] / cell_m) + 1)
-    st_g -= lower[:, None]
-    st_s -= lower[:, None]
-    # Non-negative: truncation is the floor.
-    cell_g = _truncated_rows(st_g / cell_m, max(shape))
-    cell_s = _truncated_rows(st_s / cell_m, max(shape))
-    flat_g = cell_g[0].astype(np.int64) * shape[1] + cell_g[1]
-    flat_s = cell_s[0].astype(np.int64) * shape[1] + cell_s[1]
+    flat, shape = _plane_cells(tangent_basis(normal) @ np.hstack([group, shoulder]), _SHOULDER_CELL_M)
+    flat_g, flat_s = flat[: group.shape[1]], flat[group.shape[1]:]
     n_s = np.bincount(flat_s, minlength=shape[0] * shape[1])
     candidate = n_s >= _SHOULDER_MIN_POINTS
     if not candidate.any():
@@ -729,6 +711,20 @@ def _flat_cells(group: FloatArray, shoulder: FloatArray, normal: FloatArray, d: 
     if rough.any():
         keep = ~rough[flat_g]
     return keep
+
+
+def _plane_cells(st: FloatArray, cell_m: float) -> tuple[NDArray[np.signedinteger[Any]], tuple[int, int]]:
+    """Cells (flat, row-major) of in-plane coordinates ``st`` (2, N; shifted to their minimum in
+    place) on a dense grid of ``cell_m``, and the grid's shape."""
+    st -= st.min(axis=1)[:, None]
+    extent = st.max(axis=1)
+    # A stray far point must not blow up the dense grid: coarsen it instead (very large planes).
+    while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:
+        cell_m *= 2.0
+    # Non-negative: truncation is the floor.
+    ij = _truncated_rows(st / cell_m, int(extent.max() / cell_m) + 1)
+    shape = (int(ij[0].max()) + 1, int(ij[1].max()) + 1)
+    return ij[0] * shape[1] + ij[1], shape
 
 
 class _Patch:
@@ -758,16 +754,7 @@ def _split_patches(rows: FloatArray, normal: FloatArray, config: PlanesConfig) -
     Patches with fewer than ``min_points`` points are left out; ordered by size, largest first.
     """
     st = tangent_basis(normal) @ rows  # (2, N); any in-plane basis will do for the grid
-    st -= st.min(axis=1)[:, None]
-    cell_m = config.patch_cell_m
-    extent = st.max(axis=1)
-    # A stray far point must not blow up the dense grid: coarsen it instead (very large planes).
-    while np.prod(extent / cell_m + 1) > _MAX_GRID_CELLS:
-        cell_m *= 2.0
-    # Non-negative: truncation is the floor.
-    ij = _truncated_rows(st / cell_m, int(extent.max() / cell_m) + 1)
-    shape = (int(ij[0].max()) + 1, int(ij[1].max()) + 1)
-    flat = ij[0] * shape[1] + ij[1]
+    flat, shape = _plane_cells(st, config.patch_cell_m)
     occupancy = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
     grid, n_labels = ndimage.label(occupancy >= config.patch_min_cell_points, structure=np.ones((3, 3)))
     # Points per patch from the cells' counts (a pass over the cells, not the points).
