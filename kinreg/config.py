@@ -185,6 +185,9 @@ class BlockConfig:
     # shared by all the scan's plane links: kinreg.estimate.frames); false: one pose per station,
     # the window bias added to the trajectory's links and to the reported covariances.
     scan_frames: bool = True
+    # The last adjustment observes each scan's planes once, the physical planes (clusters of the
+    # links' matches) as unknowns, instead of the links (kinreg.estimate.plane_nodes; with scan_frames).
+    plane_nodes: bool = False
 
 
 class StaticDatum(enum.Enum):

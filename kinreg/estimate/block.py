@@ -50,6 +50,10 @@ from kinreg.types import BlockResult, ObservationKind, RelativeObservation
 
 log = logging.getLogger(__name__)
 
+# Kinds whose variance component may also fall below 1 (kinreg.estimate.snooping.variance_components):
+# a scan plane against its physical plane shows its whole error in its residuals.
+_LOWERABLE = frozenset({ObservationKind.PLANE.value})
+
 
 def adjoint(T: Pose) -> FloatArray:
     """SE(3) adjoints ``(..., 6, 6)`` for twists ordered (rho, phi): ``[[R, [t]x R], [0, R]]``."""
@@ -443,7 +447,7 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
             continue
         last_round = []
         if config.variance_components and vce_rounds < config.max_variance_rounds:
-            new_weights = variance_components(tests, weights, config.alpha)
+            new_weights = variance_components(tests, weights, config.alpha, _LOWERABLE)
             changed = any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
             weights = new_weights
             vce_rounds += 1

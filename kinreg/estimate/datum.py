@@ -20,10 +20,11 @@ from kinreg.estimate.control import (
     first_station_rotation,
     free_rotations,
 )
-from kinreg.estimate.drift import DriftRates
-from kinreg.estimate.frames import adjust_with_frames, window_gain
+from kinreg.estimate.drift import DriftRates, with_window_deformation
+from kinreg.estimate.frames import adjust_with_frames, extra_first, window_gain
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
+from kinreg.estimate.plane_nodes import plane_clusters, plane_node_observations
 from kinreg.estimate.reference import associate, tie_observations
 from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import Pose, pose_sigmas, skew
@@ -304,8 +305,16 @@ def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, pro
     ``[block] scan_frames``, with a scan frame and a sensor pose per quasi-static station
     (:mod:`kinreg.estimate.frames`)."""
     if config.scan_frames:
-        return adjust_with_frames(network.stations, network.initial_poses,
-                                  network.observations(rates, previous, window_bias=False), network.datum.fixed, rates,
-                                  config, progress, network.window_gain, network.velocity_cov)
+        observations = network.observations(rates, previous, window_bias=False)
+        extra = None
+        if network.planes is not None:  # the physical planes as nodes (after the controls: their indices stay)
+            cov = network.velocity_cov
+            deformed = [with_window_deformation(p, s.T_obj_scan, rates, None if cov is None else cov[k])
+                        for k, (s, p) in enumerate(zip(network.stations, network.planes, strict=True))]
+            extra, by_plane = plane_node_observations(network.initial_poses, deformed, plane_clusters(network.links),
+                                                      extra_first(network.stations))
+            observations += by_plane
+        return adjust_with_frames(network.stations, network.initial_poses, observations, network.datum.fixed, rates,
+                                  config, progress, network.window_gain, network.velocity_cov, extra)
     return adjust_block(network.initial_poses, network.observations(rates, previous), network.datum.fixed, config,
                         progress)

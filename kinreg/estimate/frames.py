@@ -62,6 +62,11 @@ def window_gain(planes: Sequence[Plane]) -> FloatArray:
     return gain
 
 
+def extra_first(stations: Sequence[Station]) -> int:
+    """The first node after the stations and their sensor poses (:func:`adjust_with_frames`)."""
+    return len(stations) + len(sensor_nodes(stations))
+
+
 def frame_ties(stations: Sequence[Station], nodes: dict[int, int], rates: DriftRates,
                gain: FloatArray | None = None, velocity_cov: FloatArray | None = None) -> list[RelativeObservation]:
     """The ``FRAME`` observations: each scan frame's sensor pose is its own, up to the window bias:
@@ -86,26 +91,29 @@ def frame_ties(stations: Sequence[Station], nodes: dict[int, int], rates: DriftR
 def adjust_with_frames(stations: Sequence[Station], poses_initial: Pose, observations: list[RelativeObservation],
                        fixed: np.ndarray, rates: DriftRates, config: BlockConfig,
                        progress: Progress | None = None, gain: FloatArray | None = None,
-                       velocity_cov: FloatArray | None = None) -> BlockResult:
+                       velocity_cov: FloatArray | None = None, extra: Pose | None = None) -> BlockResult:
     """The block adjustment with a scan frame and a sensor pose per quasi-static station (see the
     module's docstring), returned as the stations' result: poses, covariances and tests of the
     sensor poses (tests name stations; a ``FRAME`` test names its station twice). The
     observations come as :meth:`~kinreg.estimate.network.Network.observations` gives them, on
-    the stations; their order is kept (the frame ties follow them)."""
+    the stations; their order is kept (the frame ties follow them). ``extra``: further pose nodes
+    (the physical planes, :mod:`kinreg.estimate.plane_nodes`), after the sensor poses (their
+    observations number them so: :func:`extra_first`); tests name them -1."""
     nodes = sensor_nodes(stations)
-    if not nodes:
-        return adjust_block(poses_initial, observations, fixed, config, progress)
+    extra = Pose(np.zeros((0, 4)), np.zeros((0, 3))) if extra is None else extra
     order = np.array(list(nodes), dtype=int)
     moved = [replace(o, i=nodes.get(o.i, o.i), j=nodes.get(o.j, o.j) if o.j >= 0 else o.j)
              if o.kind in _ON_SENSOR else o for o in observations]
-    poses = Pose(np.concatenate([poses_initial.quat_wxyz, poses_initial.quat_wxyz[order]]),
-                 np.concatenate([poses_initial.t_xyz, poses_initial.t_xyz[order]]))
-    held = np.concatenate([np.asarray(fixed, dtype=bool), np.asarray(fixed, dtype=bool)[order]])
+    poses = Pose(np.concatenate([poses_initial.quat_wxyz, poses_initial.quat_wxyz[order], extra.quat_wxyz]),
+                 np.concatenate([poses_initial.t_xyz, poses_initial.t_xyz[order], extra.t_xyz]))
+    held = np.concatenate([np.asarray(fixed, dtype=bool), np.asarray(fixed, dtype=bool)[order],
+                           np.zeros(len(extra), dtype=bool)])
     held[order] = False  # a station held as datum holds its sensor pose; its frame follows by the tie
     result = adjust_block(poses, moved + frame_ties(stations, nodes, rates, gain, velocity_cov), held, config, progress)
     n = len(stations)
     back = np.arange(len(poses))
-    back[n:] = order
+    back[n:n + len(order)] = order
+    back[n + len(order):] = -1
     pick = np.arange(n)
     pick[order] = n + np.arange(len(order))
     tests = tuple(replace(t, i=int(back[t.i]), j=int(back[t.j]) if t.j >= 0 else t.j) for t in result.tests)

@@ -198,6 +198,9 @@ class Network:
     # per station (n, 6, 6, scan axes): the covariance of the drift velocity inside its window that
     # the deskewed planes leave (kinreg.estimate.drift.window_velocity_covariance); None: the rates'
     velocity_cov: NDArray[np.float64] | None = None
+    # per station the planes its links were made with: where given, the block adjusts the physical
+    # planes as nodes of their own instead of the links (kinreg.estimate.plane_nodes)
+    planes: tuple[tuple[Plane, ...], ...] | None = None
 
     @property
     def initial_poses(self) -> Pose:
@@ -209,16 +212,20 @@ class Network:
         through a ``previous`` adjustment, :func:`block_observations`), and the datum's; the
         control points' come last, in the order of ``datum.controls``
         (:meth:`control_indices`). ``window_bias``: see :func:`block_observations`."""
-        return (block_observations(self.stations, self.links, rates, previous, window_bias)
+        return (block_observations(self.stations, self._linked(), rates, previous, window_bias)
                 + list(self.datum.observations)
                 + control_observations(self.datum.controls, self.stations, rates, previous, window_bias))
 
     def control_indices(self, rates: DriftRates) -> range:
         """The positions of the control points' observations in :meth:`observations` with ``rates``
         (whose drift model decides how many observations the trajectory gives)."""
-        n = len(block_observations(self.stations, self.links, rates))
+        n = len(block_observations(self.stations, self._linked(), rates))
         first = n + len(self.datum.observations)
         return range(first, first + len(self.datum.controls))
+
+    def _linked(self) -> Sequence[Link]:
+        """The links the block observes: none where it adjusts the physical planes instead."""
+        return self.links if self.planes is None else ()
 
     def with_links(self, links: Sequence[Link]) -> Network:
         return replace(self, links=tuple(links))

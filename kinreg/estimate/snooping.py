@@ -221,12 +221,21 @@ def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float
     return chosen
 
 
+# How far a kind whose errors show in its residuals may be trusted above its a-priori model: its
+# weight at most 4x (sigmas halved). The plane floors are set for real scanners' plane systematics;
+# below half of them, a clean simulation's residuals would speak for scanners they never saw.
+MAX_WEIGHT_GAIN = 4.0
+
+
 def variance_components(tests: ObservationTests | Sequence[ObservationTest], weights: dict[str, float],
-                         alpha: float) -> dict[str, float]:
+                         alpha: float, may_lower: frozenset[str] = frozenset()) -> dict[str, float]:
     """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current
     weights; a group's weight is divided by sigma_g^2, never above the a-priori weight, and
     lowered only where its own chi-square test rejects the current model
-    (``(e^T P e)_g > chi2(1 - alpha, r_g)``).
+    (``(e^T P e)_g > chi2(1 - alpha, r_g)``). The kinds in ``may_lower`` (whose errors all show in
+    their residuals: the scan planes against the physical planes) are also raised where their
+    residuals are significantly smaller than the model (``< chi2(alpha, r_g)``), to at most
+    :data:`MAX_WEIGHT_GAIN` times the a-priori weight.
     Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
     """
     if not isinstance(tests, ObservationTests):
@@ -245,7 +254,10 @@ def variance_components(tests: ObservationTests | Sequence[ObservationTest], wei
         # widely (r = 6, four control points: chi-square/6 exceeds 1 in 42% of draws of a right
         # model), so inflating on every estimate above 1 inflates on average. A group inflated too
         # far in an earlier round (by another group's misfit) goes back towards its a-priori weight.
+        if kind in may_lower and omega < chi2_quantile(alpha, r):
+            new[kind] = min(MAX_WEIGHT_GAIN, weights[kind] / max(omega / r, 1e-6))
+            continue
         if omega > r and omega <= chi2_quantile(1.0 - alpha, r):
             continue
-        new[kind] = min(1.0, weights[kind] / max(omega / r, 1e-6))
+        new[kind] = min(1.0 if kind not in may_lower else max(1.0, weights[kind]), weights[kind] / max(omega / r, 1e-6))
     return new

@@ -243,6 +243,7 @@ def adjust_with_measured_drift(
     linked_with = prior_rates
     tried: list[tuple[float, float]] = []  # (coupling deskewed and adjusted with, coupling it measured)
     rounds = config.block.max_relink_rounds + _COUPLING_ROUNDS if config.block.max_relink_rounds else 0
+    used_planes = planes  # those of the last links
     for round_ in range(rounds):
         # Matched again from the adjusted poses: pairs that the trajectory's drift kept apart or
         # out of the gates (loop closures) are linked now, and the planes' window deformation
@@ -260,6 +261,7 @@ def adjust_with_measured_drift(
                               config.pairwise, progress, static, executor, rates, adjusted=result,
                               previous=() if faster or sheared else network.links, velocity_cov=velocity_cov)
         linked_with = rates if faster else linked_with
+        used_planes = deskewed if sheared else planes
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
         network = replace(network.with_links(links), velocity_cov=velocity_cov)
@@ -278,6 +280,8 @@ def adjust_with_measured_drift(
     # Control points tested against their own sigmas, then the last pass: the trajectory's links
     # coupled with the measured coupling and rates.
     network = screen_control_points(network, rates, config.block, progress, previous=result)
+    if config.block.plane_nodes and config.block.scan_frames:
+        network = replace(network, planes=tuple(used_planes))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     _warn_trajectory_misfits(result, config.block.alpha)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)

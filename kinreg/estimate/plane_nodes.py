@@ -1,0 +1,133 @@
+"""The physical planes as unknowns of the block: each scan's planes observed once.
+
+A pairwise link carries the errors of both scans' planes. A scan linked to eight others carries
+its planes' errors into eight links, and the block, which takes the links as independent, counts
+them eight times: the network's turn about a station whose few planes fix its frame poorly gets a
+sigma several times too small (issue #14: the datum station of the large class, 0.08 mrad reported
+where its five planes fix 0.13 mrad).
+
+Here the links only say which planes are the same physical plane (their matches, joined over all
+links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` whose z axis is the
+plane's normal and whose origin lies on it; each scan plane in it is one ``PLANE`` observation of
+``T_k^-1 F_g`` with rank-3 information (the plane's offset and its two tilts, from the plane's own
+covariance). The three directions a plane leaves free (the shift in it, the turn about its normal)
+are held by a ``STATION`` observation of the node itself with only those directions (one metre, one
+radian): no other observation sees them, so it changes nothing else, has no redundancy and is
+never tested.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from kinreg.geometry import FloatArray, Pose, matrix_to_quat
+from kinreg.types import Link, LinkStatus, ObservationKind, Plane, RelativeObservation
+
+# The residual's order (rho, phi): where a plane's offset and tilts sit (phi_x, phi_y, rho_z).
+_DETERMINED = np.array([3, 4, 2])
+_FREE = np.array([0, 1, 5])
+_GAUGE_SIGMA = 1.0  # [m], [rad]: the hold on a plane node's free directions
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneNodes:
+    """The physical planes of a network: per cluster its members ``(station, plane_id)``."""
+
+    clusters: tuple[tuple[tuple[int, int], ...], ...]
+
+    def __len__(self) -> int:
+        return len(self.clusters)
+
+
+def plane_clusters(links: Sequence[Link]) -> PlaneNodes:
+    """The scan planes joined into physical planes by the matches of the usable links (union-find
+    over ``(station, plane_id)``); only planes seen by two stations or more."""
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def root(key: tuple[int, int]) -> tuple[int, int]:
+        parent.setdefault(key, key)
+        while parent[key] != key:
+            parent[key] = parent[parent[key]]
+            key = parent[key]
+        return key
+
+    for link in links:
+        if link.status is not LinkStatus.OK or link.rank == 0:
+            continue
+        for m in link.matches:
+            a, b = root((link.scan_i, m.plane_i)), root((link.scan_j, m.plane_j))
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for key in parent:
+        groups.setdefault(root(key), []).append(key)
+    clusters = tuple(tuple(sorted(g)) for g in groups.values() if len({k for k, _ in g}) >= 2)
+    return PlaneNodes(tuple(sorted(clusters)))
+
+
+def _frame(normal: FloatArray, point: FloatArray, x_hint: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rotation (columns x, y, n) and origin of a plane frame: z along ``normal``, x the hint
+    projected into the plane."""
+    x = x_hint - (x_hint @ normal) * normal
+    if np.linalg.norm(x) < 1e-6:
+        x = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x = x / np.linalg.norm(x)
+    return np.column_stack([x, np.cross(normal, x), normal]), point
+
+
+def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> FloatArray:
+    """The 6x6 information of a plane frame (rotation ``R``, ``origin`` on the plane, scan axes)
+    in the block's residual order: the plane's offset at the origin and its tilts about the frame's
+    x and y axes, from ``cov_uvd``; zero along the three free directions."""
+    x, y = R[:, 0], R[:, 1]
+    u, v = plane.basis_uv[0], plane.basis_uv[1]
+    M = np.array([[x @ u, x @ v], [y @ u, y @ v]])  # (a, b) along (u, v) -> along (x, y)
+    to_xy = np.eye(3)
+    to_xy[:2, :2] = M
+    # A normal tilted by a along x and b along y is the frame turned by -b about x and a about y;
+    # the offset at the origin then moves by e - a x.o - b y.o.
+    J = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [-(x @ origin), -(y @ origin), 1.0]]) @ to_xy
+    cov = J @ plane.cov_uvd @ J.T
+    info = np.zeros((6, 6))
+    info[np.ix_(_DETERMINED, _DETERMINED)] = np.linalg.inv(0.5 * (cov + cov.T))
+    return 0.5 * (info + info.T)
+
+
+def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], nodes: PlaneNodes,
+                            first_node: int) -> tuple[Pose, list[RelativeObservation]]:
+    """The plane nodes' initial poses (object frame, from the cluster's largest plane on the
+    stations' ``poses``) and their observations: one ``PLANE`` observation per scan plane (its
+    station, node ``first_node + g``) and the hold on each node's free directions. Each
+    observation's frame is anchored where the node's prediction puts it (the nearest point on the
+    observed plane, the node's x axis turned into it), so that the free directions start at zero."""
+    by_id = [{p.plane_id: p for p in ps} for ps in planes]
+    quats, origins, observations = [], [], []
+    gauge = np.zeros((6, 6))
+    gauge[_FREE, _FREE] = 1.0 / _GAUGE_SIGMA**2
+    for g, members in enumerate(nodes.clusters):
+        k0, p0 = max(members, key=lambda m: by_id[m[0]][m[1]].n_points)
+        plane0 = by_id[k0][p0]
+        c = plane0.centroid_xyz
+        R0, o0 = _frame(plane0.normal, c - (plane0.normal @ c - plane0.d_m) * plane0.normal, plane0.basis_uv[0])
+        F = poses[k0].compose(Pose(matrix_to_quat(R0), o0))
+        quats.append(F.quat_wxyz)
+        origins.append(F.t_xyz)
+        node = first_node + g
+        for k, pid in members:
+            plane = by_id[k][pid]
+            D = poses[k].inverse().compose(F)  # the node in scan k's frame, as predicted
+            t = D.t_xyz
+            # A scan on the plane's other side sees its normal the other way (towards itself): the
+            # same plane, with normal and offset negated (its covariance is the same).
+            side = 1.0 if plane.normal @ D.rotation_matrix[:, 2] >= 0 else -1.0
+            normal, d = side * plane.normal, side * plane.d_m
+            R, o = _frame(normal, t - (normal @ t - d) * normal, D.rotation_matrix[:, 0])
+            observations.append(RelativeObservation(ObservationKind.PLANE, k, node, Pose(matrix_to_quat(R), o),
+                                                    plane_information(plane, R, o), 3))
+        observations.append(RelativeObservation(ObservationKind.STATION, node, -1, F, gauge.copy(), 3))
+    if not quats:
+        return Pose(np.zeros((0, 4)), np.zeros((0, 3))), observations
+    return Pose(np.array(quats), np.array(origins)), observations
