@@ -73,5 +73,6 @@ def test_the_links_matches_join_into_physical_planes():
         return SimpleNamespace(scan_i=i, scan_j=j, status=status, rank=6,
                                matches=tuple(PlaneMatch(a, b, 0.0, 0.0, 1.0) for a, b in pairs))
 
-    nodes = plane_clusters([link(0, 1, [(0, 0), (1, 1)]), link(1, 2, [(0, 3)]), link(2, 3, [(5, 5)], LinkStatus.REJECTED)])
+    links = [link(0, 1, [(0, 0), (1, 1)]), link(1, 2, [(0, 3)]), link(2, 3, [(5, 5)], LinkStatus.REJECTED)]
+    nodes = plane_clusters(links)
     assert nodes.clusters == (((0, 0), (1, 0), (2, 3)), ((0, 1), (1, 1)))

@@ -24,7 +24,7 @@ from kinreg.estimate.drift import DriftRates, with_window_deformation
 from kinreg.estimate.frames import adjust_with_frames, extra_first, window_gain
 from kinreg.estimate.jumps import detect_jumps, jump_arrays, jump_removal
 from kinreg.estimate.network import Datum, Network, block_observations
-from kinreg.estimate.plane_nodes import plane_clusters, plane_node_observations
+from kinreg.estimate.plane_nodes import plane_node_observations
 from kinreg.estimate.reference import associate, tie_observations
 from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import Pose, pose_sigmas, skew
@@ -307,11 +307,12 @@ def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, pro
     if config.scan_frames:
         observations = network.observations(rates, previous, window_bias=False)
         extra = None
-        if network.planes is not None:  # the physical planes as nodes (after the controls: their indices stay)
+        if network.planes is not None and network.plane_nodes is not None:
+            # the physical planes as nodes (after the controls: their indices stay)
             cov = network.velocity_cov
             deformed = [with_window_deformation(p, s.T_obj_scan, rates, None if cov is None else cov[k])
                         for k, (s, p) in enumerate(zip(network.stations, network.planes, strict=True))]
-            extra, by_plane = plane_node_observations(network.initial_poses, deformed, plane_clusters(network.links),
+            extra, by_plane = plane_node_observations(network.initial_poses, deformed, network.plane_nodes,
                                                       extra_first(network.stations))
             observations += by_plane
         return adjust_with_frames(network.stations, network.initial_poses, observations, network.datum.fixed, rates,

@@ -98,7 +98,8 @@ def adjust_with_frames(stations: Sequence[Station], poses_initial: Pose, observa
     observations come as :meth:`~kinreg.estimate.network.Network.observations` gives them, on
     the stations; their order is kept (the frame ties follow them). ``extra``: further pose nodes
     (the physical planes, :mod:`kinreg.estimate.plane_nodes`), after the sensor poses (their
-    observations number them so: :func:`extra_first`); tests name them -1."""
+    observations number them so: :func:`extra_first`); a test names an extra node by its number
+    among them (a ``PLANE`` test: station and physical plane)."""
     nodes = sensor_nodes(stations)
     extra = Pose(np.zeros((0, 4)), np.zeros((0, 3))) if extra is None else extra
     order = np.array(list(nodes), dtype=int)
@@ -113,10 +114,13 @@ def adjust_with_frames(stations: Sequence[Station], poses_initial: Pose, observa
     n = len(stations)
     back = np.arange(len(poses))
     back[n:n + len(order)] = order
-    back[n + len(order):] = -1
+    first_extra = n + len(order)
+    back[first_extra:] = np.arange(len(extra))  # an extra node's test names its number among them
     pick = np.arange(n)
     pick[order] = n + np.arange(len(order))
-    tests = tuple(replace(t, i=int(back[t.i]), j=int(back[t.j]) if t.j >= 0 else t.j) for t in result.tests)
+    # (the holds of the extra nodes' free directions are no observations to report)
+    tests = tuple(replace(t, i=int(back[t.i]), j=int(back[t.j]) if t.j >= 0 else t.j) for t in result.tests
+                  if t.i < first_extra)
     return replace(result, poses=result.poses[pick], poses_initial=result.poses_initial[pick],
                    fixed=np.asarray(fixed, dtype=bool).copy(), cov_xi=result.cov_xi[pick],
                    cov_position=result.cov_position[pick], tests=tests)

@@ -22,6 +22,7 @@ from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
 from kinreg.estimate.pairwise import adjust_pair
+from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.types import (
     BlockResult,
@@ -201,6 +202,7 @@ class Network:
     # per station the planes its links were made with: where given, the block adjusts the physical
     # planes as nodes of their own instead of the links (kinreg.estimate.plane_nodes)
     planes: tuple[tuple[Plane, ...], ...] | None = None
+    plane_nodes: PlaneNodes | None = None  # ... and which of them are one physical plane
 
     @property
     def initial_poses(self) -> Pose:
@@ -225,7 +227,7 @@ class Network:
 
     def _linked(self) -> Sequence[Link]:
         """The links the block observes: none where it adjusts the physical planes instead."""
-        return self.links if self.planes is None else ()
+        return self.links if self.plane_nodes is None else ()
 
     def with_links(self, links: Sequence[Link]) -> Network:
         return replace(self, links=tuple(links))

@@ -10,13 +10,15 @@ import csv
 import io
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.io.atomic import atomic_path
-from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, Plane, Station
+from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, ObservationTest, Plane, Station
 
 # METHOD.md section 6: fixed names and order, other tools read them.
 STATIONS_HEADER = ["station", "t", "t_start", "t_end", "x", "y", "z", "qw", "qx", "qy", "qz",
@@ -71,17 +73,28 @@ def format_stations_csv(rows: list[dict[str, Any]]) -> str:
     return buf.getvalue()
 
 
-def links_table(links: Sequence[Link], result: BlockResult | None) -> list[dict[str, Any]]:
-    """One row per pairwise link with its figures (and its test in the block adjustment)."""
+def links_table(links: Sequence[Link], result: BlockResult | None,
+                plane_nodes: PlaneNodes | None = None) -> list[dict[str, Any]]:
+    """One row per pairwise link with its figures (and its test in the block adjustment). Where the
+    block adjusted the physical planes (``plane_nodes``) instead of the links, a link's block figures
+    are those of its worst matched scan plane (its statistic is not given: no observation was the
+    link's own), and it counts as rejected where one of its planes was."""
     block_tests = {}
     if result is not None:
         for t in result.tests:
             if t.kind is ObservationKind.PLANES:
                 block_tests[(t.i, t.j)] = t
+    by_plane = _plane_tests(result, plane_nodes) if result is not None and plane_nodes is not None else {}
     rows = []
     for link in links:
         sig = np.sqrt(np.maximum(np.diag(link.cov_xi), 0.0))
         test = block_tests.get((link.scan_i, link.scan_j))
+        if by_plane:
+            seen = [by_plane[key] for m in link.matches for key in ((link.scan_i, m.plane_i), (link.scan_j, m.plane_j))
+                    if key in by_plane]
+            worst = max(seen, key=lambda t: t.normalised if np.isfinite(t.normalised) else -1.0, default=None)
+            test = None if worst is None else replace(worst, statistic=math.nan,
+                                                      rejected=any(t.rejected for t in seen))
         rows.append({
             "scan_i": link.scan_i, "scan_j": link.scan_j, "status": link.status.value, "dt_s": link.dt_s,
             "n_matches": len(link.matches), "n_rejected_matches": len(link.rejected),
@@ -100,6 +113,19 @@ def links_table(links: Sequence[Link], result: BlockResult | None) -> list[dict[
             "block_rejected": bool(test.rejected) if test else False,
         })  # fmt: skip
     return rows
+
+
+def _plane_tests(result: BlockResult, nodes: PlaneNodes) -> dict[tuple[int, int], ObservationTest]:
+    """The block's test of each scan plane ``(station, plane_id)`` against its physical plane."""
+    out = {}
+    taken = [0] * len(nodes)  # the observations of a physical plane come in its members' order
+    for t in result.tests:
+        if t.kind is ObservationKind.PLANE and 0 <= t.j < len(nodes) and taken[t.j] < len(nodes.clusters[t.j]):
+            k, pid = nodes.clusters[t.j][taken[t.j]]
+            taken[t.j] += 1
+            if k == t.i:
+                out[(k, pid)] = t
+    return out
 
 
 def format_links_csv(rows: list[dict[str, Any]]) -> str:

@@ -400,7 +400,7 @@ def write_tables(out: Path, report: dict[str, Any], network: Network, result: Bl
     written last); the report's images are read from ``figures_dir`` (default ``out``)."""
     rows = stations_table(network.stations, result, planes, network.links)
     write_text(out / "stations.csv", format_stations_csv(rows))
-    write_text(out / "links.csv", format_links_csv(links_table(network.links, result)))
+    write_text(out / "links.csv", format_links_csv(links_table(network.links, result, network.plane_nodes)))
     write_text(out / "config.toml", report["config_toml"])
     write_text(out / "report.html", render_html(report, base_dir=figures_dir or out))
     # always written (only its header without --control/--check): every name in OUTPUT_FILES is

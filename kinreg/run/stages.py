@@ -35,6 +35,7 @@ from kinreg.estimate.drift import (
     with_window_deformation,
 )
 from kinreg.estimate.network import Network, link_pair, station_pairs
+from kinreg.estimate.plane_nodes import plane_clusters
 from kinreg.estimate.planes import detect_planes
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import SensorTrack, sensor_track
@@ -281,7 +282,10 @@ def adjust_with_measured_drift(
     # coupled with the measured coupling and rates.
     network = screen_control_points(network, rates, config.block, progress, previous=result)
     if config.block.plane_nodes and config.block.scan_frames:
-        network = replace(network, planes=tuple(used_planes))
+        # The links' matches say which planes are one; a link the block rejected says nothing.
+        rejected = {(t.i, t.j) for t in result.tests if t.kind is ObservationKind.PLANES and t.rejected}
+        usable = [link for link in network.links if (link.scan_i, link.scan_j) not in rejected]
+        network = replace(network, planes=tuple(used_planes), plane_nodes=plane_clusters(usable))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     _warn_trajectory_misfits(result, config.block.alpha)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
