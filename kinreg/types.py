@@ -264,7 +264,8 @@ class ObservationKind(enum.Enum):
     DRIFT = "drift"  # how the trajectory's drift velocity changes from one link to the next
     POINT = "point"  # a surveyed point on the pose interpolated between two stations (control points)
     FRAME = "frame"  # a quasi-static scan's frame against its sensor pose (the window bias, kinreg.estimate.frames)
-    PLANE = "plane"  # one scan plane against the physical plane it belongs to (kinreg.estimate.plane_nodes)
+    PLANE = "plane"  # one scan plane's tilts against the physical plane it belongs to (kinreg.estimate.plane_nodes)
+    PLANE_OFFSET = "plane offset"  # ... and its offset, given its tilts
 
 
 @dataclass(frozen=True, eq=False)

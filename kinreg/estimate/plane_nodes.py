@@ -9,8 +9,8 @@ where its five planes fix 0.13 mrad).
 Here the links only say which planes are the same physical plane (their matches, joined over all
 links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` whose z axis is the
 plane's normal and whose origin lies on it; each scan plane in it is one ``PLANE`` observation of
-``T_k^-1 F_g`` with rank-3 information (the plane's offset and its two tilts, from the plane's own
-covariance). The three directions a plane leaves free (the shift in it, the turn about its normal)
+``T_k^-1 F_g``: its two tilts (rank 2) and its offset given the tilts (rank 1, ``PLANE_OFFSET``),
+from the plane's own covariance, each kind with a variance component of its own. The three directions a plane leaves free (the shift in it, the turn about its normal)
 are held by a ``STATION`` observation of the node itself with only those directions (one metre, one
 radian): no other observation sees them, so it changes nothing else, has no redundancy and is
 never tested.
@@ -78,10 +78,14 @@ def _frame(normal: FloatArray, point: FloatArray, x_hint: FloatArray) -> tuple[F
     return np.column_stack([x, np.cross(normal, x), normal]), point
 
 
-def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> FloatArray:
+def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> tuple[FloatArray, FloatArray]:
     """The 6x6 information of a plane frame (rotation ``R``, ``origin`` on the plane, scan axes)
-    in the block's residual order: the plane's offset at the origin and its tilts about the frame's
-    x and y axes, from ``cov_uvd``; zero along the three free directions."""
+    in the block's residual order, from ``cov_uvd``, in two parts that sum to it: the tilts about
+    the frame's x and y axes (rank 2, their marginal information) and the offset at the origin
+    given the tilts (rank 1); zero along the three free directions. The two are independent, so
+    each gets a variance component of its own: a plane fit's offset and tilts are not off from
+    their floors by the same factor (in the simulated medium class, the offsets' residuals are a
+    tenth of their model's, the tilts' a third)."""
     x, y = R[:, 0], R[:, 1]
     u, v = plane.basis_uv[0], plane.basis_uv[1]
     M = np.array([[x @ u, x @ v], [y @ u, y @ v]])  # (a, b) along (u, v) -> along (x, y)
@@ -91,9 +95,14 @@ def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> FloatA
     # the offset at the origin then moves by e - a x.o - b y.o.
     J = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [-(x @ origin), -(y @ origin), 1.0]]) @ to_xy
     cov = J @ plane.cov_uvd @ J.T
-    info = np.zeros((6, 6))
-    info[np.ix_(_DETERMINED, _DETERMINED)] = np.linalg.inv(0.5 * (cov + cov.T))
-    return 0.5 * (info + info.T)
+    cov = 0.5 * (cov + cov.T)
+    C_tt, C_ot = cov[:2, :2], cov[2, :2]
+    K = np.linalg.solve(C_tt, C_ot)  # the offset's regression on the tilts
+    w = np.array([-K[0], -K[1], 1.0])
+    tilts, offset = np.zeros((6, 6)), np.zeros((6, 6))
+    tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])] = np.linalg.inv(C_tt)
+    offset[np.ix_(_DETERMINED, _DETERMINED)] = np.outer(w, w) / (cov[2, 2] - C_ot @ K)
+    return 0.5 * (tilts + tilts.T), offset
 
 
 def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], nodes: PlaneNodes,
@@ -125,8 +134,10 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
             side = 1.0 if plane.normal @ D.rotation_matrix[:, 2] >= 0 else -1.0
             normal, d = side * plane.normal, side * plane.d_m
             R, o = _frame(normal, t - (normal @ t - d) * normal, D.rotation_matrix[:, 0])
-            observations.append(RelativeObservation(ObservationKind.PLANE, k, node, Pose(matrix_to_quat(R), o),
-                                                    plane_information(plane, R, o), 3))
+            Z = Pose(matrix_to_quat(R), o)
+            tilts, offset = plane_information(plane, R, o)
+            observations.append(RelativeObservation(ObservationKind.PLANE, k, node, Z, tilts, 2))
+            observations.append(RelativeObservation(ObservationKind.PLANE_OFFSET, k, node, Z, offset, 1))
         observations.append(RelativeObservation(ObservationKind.STATION, node, -1, F, gauge.copy(), 3))
     if not quats:
         return Pose(np.zeros((0, 4)), np.zeros((0, 3))), observations
