@@ -6,7 +6,7 @@ import pytest
 from kinreg.config import BlockConfig
 from kinreg.errors import EstimationError
 from kinreg.estimate.block import adjust_block
-from kinreg.estimate.snooping import variance_components
+from kinreg.estimate.snooping import MAX_WEIGHT_GAIN, variance_components
 from kinreg.geometry import Pose, rotvec_to_quat
 from kinreg.types import ObservationKind, ObservationTest, RelativeObservation
 
@@ -157,6 +157,22 @@ def test_variance_components_inflate_only_where_the_group_test_rejects():
     # a large group: 1.5 times is far beyond chance
     planes = variance_components(group(ObservationKind.PLANES, 500, 1.5), weights, 0.001)["planes"]
     assert planes == pytest.approx(1 / 1.5)
+
+
+def test_variance_components_lower_only_the_kinds_whose_whole_error_shows():
+    def group(kind, r, vtpv_each):
+        return [ObservationTest(k, kind, k, -1, float("nan"), 1, 1.0, float("nan"), False, vtpv_each) for k in range(r)]
+
+    weights = {"plane": 1.0, "planes": 1.0}
+    tests = group(ObservationKind.PLANE, 300, 0.5) + group(ObservationKind.PLANES, 300, 0.5)
+    new = variance_components(tests, weights, 0.001, frozenset({"plane"}))
+    assert new["plane"] == pytest.approx(2.0)  # half the expected squares: the weight doubled
+    assert new["planes"] == 1.0  # the links' errors are shared: never below the a-priori model
+    # at a tenth of the expected squares the weight stops at MAX_WEIGHT_GAIN; near 1 it stays
+    assert variance_components(group(ObservationKind.PLANE, 300, 0.1), weights, 0.001,
+                               frozenset({"plane"}))["plane"] == MAX_WEIGHT_GAIN
+    assert variance_components(group(ObservationKind.PLANE, 300, 0.95), weights, 0.001,
+                               frozenset({"plane"}))["plane"] == 1.0
 
 
 def test_gross_error_is_found_by_data_snooping():
