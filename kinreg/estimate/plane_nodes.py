@@ -8,12 +8,17 @@ where its five planes fix 0.13 mrad).
 
 Here the links only say which planes are the same physical plane (their matches, joined over all
 links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` whose z axis is the
-plane's normal and whose origin lies on it; each scan plane in it is one ``PLANE`` observation of
-``T_k^-1 F_g``: its two tilts (rank 2) and its offset given the tilts (rank 1, ``PLANE_OFFSET``),
-from the plane's own covariance, each kind with a variance component of its own. The three directions a plane leaves free (the shift in it, the turn about its normal)
-are held by a ``STATION`` observation of the node itself with only those directions (one metre, one
-radian): no other observation sees them, so it changes nothing else, has no redundancy and is
-never tested.
+plane's normal and whose origin lies on it. Each scan plane in it observes ``T_k^-1 F_g`` twice,
+from the plane's own covariance: its two tilts (``PLANE``, rank 2) and its offset given the tilts
+(``PLANE_OFFSET``, rank 1), each kind with a variance component of its own, which may also fall
+below 1 (their residuals show their whole error: :mod:`kinreg.estimate.snooping`). The three
+directions a plane leaves free (the shift in it, the turn about its normal) are held by a
+``STATION`` observation of the node itself with only those directions (one metre, one radian): no
+other observation sees them, so it changes nothing else, has no redundancy and is never tested.
+
+The final adjustment only (:func:`kinreg.run.stages.adjust_with_measured_drift`): the links are
+still what matching, relinking and their snooping work on, and a link the block rejected joins no
+planes. Scan planes are not snooped there (:mod:`kinreg.estimate.block`).
 """
 
 from __future__ import annotations
