@@ -168,8 +168,8 @@ def test_variance_components_lower_only_the_kinds_whose_whole_error_shows():
     new = variance_components(tests, weights, 0.001, frozenset({"plane"}))
     assert new["plane"] == pytest.approx(2.0)  # half the expected squares: the weight doubled
     assert new["planes"] == 1.0  # the links' errors are shared: never below the a-priori model
-    # at a tenth of the expected squares the weight stops at MAX_WEIGHT_GAIN; near 1 it stays
-    assert variance_components(group(ObservationKind.PLANE, 300, 0.1), weights, 0.001,
+    # at a hundredth of the expected squares the weight stops at MAX_WEIGHT_GAIN; near 1 it stays
+    assert variance_components(group(ObservationKind.PLANE, 300, 0.01), weights, 0.001,
                                frozenset({"plane"}))["plane"] == MAX_WEIGHT_GAIN
     assert variance_components(group(ObservationKind.PLANE, 300, 0.95), weights, 0.001,
                                frozenset({"plane"}))["plane"] == 1.0
