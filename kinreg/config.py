@@ -187,7 +187,7 @@ class BlockConfig:
     scan_frames: bool = True
     # The last adjustment observes each scan's planes once, the physical planes (clusters of the
     # links' matches) as unknowns, instead of the links (kinreg.estimate.plane_nodes; with scan_frames).
-    plane_nodes: bool = False
+    plane_nodes: bool = True
 
 
 class StaticDatum(enum.Enum):
