@@ -113,3 +113,11 @@ def test_process_with_the_planes_as_nodes(tmp_path):
     with open(tmp_path / "out" / "links.csv") as f:
         links = [r for r in csv.DictReader(f) if r["status"] == "ok"]
     assert links and all(np.isfinite(float(r["block_normalised"])) for r in links)
+
+
+def test_the_report_draws_a_scan_plane_s_residuals_with_its_own_degrees_of_freedom():
+    from kinreg.report.plots import _residual_dofs
+
+    assert _residual_dofs({}, "plane") == {2: 1.0}
+    assert _residual_dofs({}, "plane offset") == {1: 1.0}
+    assert _residual_dofs({}, "trajectory") == {6: 1.0}

@@ -472,9 +472,15 @@ def _normal_density(y: float) -> float:
     return math.exp(-y * y / 2) / math.sqrt(2 * math.pi)
 
 
+_SCAN_PLANE_DOF = {"plane": 2, "plane offset": 1}
+
+
 def _residual_dofs(report: dict[str, Any], kind: str) -> dict[int, float]:
-    """Degrees of freedom per observation kind: plane links have the rank of their plane set,
-    trajectory and station observations are full 6-dof poses."""
+    """Degrees of freedom per observation kind: plane links have the rank of their plane set, a
+    scan plane's tilts 2 and its offset 1 (:mod:`kinreg.estimate.plane_nodes`), trajectory and
+    station observations are full 6-dof poses."""
+    if kind in _SCAN_PLANE_DOF:
+        return {_SCAN_PLANE_DOF[kind]: 1.0}
     if kind == "planes":
         hist = _get(report, "links", "rank_histogram", default={}) or {}
         dofs = {int(k): float(v) for k, v in hist.items() if str(k).isdigit() and 0 < int(k) <= 6
