@@ -79,42 +79,6 @@ def test_the_links_matches_join_into_physical_planes():
     assert nodes.clusters == (((0, 0), (1, 0), (2, 3)), ((0, 1), (1, 1)))
 
 
-def test_process_with_the_planes_as_nodes(tmp_path):
-    """``kinreg process`` with ``[block] plane_nodes``: the stations come back to the truth, the
-    report carries the planes' two variance components, and each link in links.csv the block test
-    of its worst plane."""
-    import csv
-    import json
-
-    import pytest
-    from kinreg_cli.main import main
-
-    from kinreg.io.trajectory import read_trajectory
-    from kinreg.report.json import rigid_fit
-    from kinreg.simulation.files import write_run
-    from kinreg.simulation.run import SimulationConfig, simulate_run
-
-    write_run(simulate_run(SimulationConfig(seed=3, duration_s=60.0)), tmp_path / "data")
-    config = tmp_path / "nodes.toml"
-    config.write_text("[block]\nplane_nodes = true\n")
-    with pytest.raises(SystemExit) as info:
-        main(["process", "-t", str(tmp_path / "data" / "run_trajectory.txt"), "-c",
-              str(tmp_path / "data" / "run_cloud.laz"), "-o", str(tmp_path / "out"), "--config", str(config)])
-    assert info.value.code == 0
-    with open(tmp_path / "out" / "stations.csv") as f:
-        rows = list(csv.DictReader(f))
-    t = np.array([float(r["t"]) for r in rows])
-    adjusted = np.array([[float(r[k]) for k in "xyz"] for r in rows])
-    truth = read_trajectory(tmp_path / "data" / "truth_trajectory.txt").pose_at(t).t_xyz
-    R, shift = rigid_fit(adjusted, truth)
-    assert np.sqrt(np.mean(np.sum((adjusted @ R.T + shift - truth) ** 2, axis=1))) < 0.003
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert {"plane", "plane offset"} <= set(report["adjustment"]["variance_components"])
-    with open(tmp_path / "out" / "links.csv") as f:
-        links = [r for r in csv.DictReader(f) if r["status"] == "ok"]
-    assert links and all(np.isfinite(float(r["block_normalised"])) for r in links)
-
-
 def test_the_report_draws_a_scan_plane_s_residuals_with_its_own_degrees_of_freedom():
     from kinreg.report.plots import _residual_dofs
 

@@ -91,6 +91,16 @@ def test_report_json(processed):
     assert set(report["timings_s"]) >= {"slice", "planes", "link", "block"}
 
 
+def test_the_block_adjusts_the_planes_as_nodes(processed):
+    """With ``[block] plane_nodes`` (the default): the report carries the planes' two variance
+    components, and each link in links.csv the block test of its worst plane."""
+    report = json.loads((processed / "out" / "report.json").read_text())
+    assert {"plane", "plane offset"} <= set(report["adjustment"]["variance_components"])
+    with open(processed / "out" / "links.csv") as f:
+        links = [r for r in csv.DictReader(f) if r["status"] == "ok"]
+    assert links and all(np.isfinite(float(r["block_normalised"])) for r in links)
+
+
 def test_existing_results_are_not_overwritten(processed, capsys):
     with pytest.raises(SystemExit) as info:
         main(["process", "-t", str(processed / "data" / "run_trajectory.txt"),

@@ -73,14 +73,14 @@ def plane_clusters(links: Sequence[Link]) -> PlaneNodes:
     return PlaneNodes(tuple(sorted(clusters)))
 
 
-def _frame(normal: FloatArray, point: FloatArray, x_hint: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Rotation (columns x, y, n) and origin of a plane frame: z along ``normal``, x the hint
-    projected into the plane."""
+def _frame(normal: FloatArray, x_hint: FloatArray) -> FloatArray:
+    """Rotation (columns x, y, n) of a plane frame: z along ``normal``, x the hint projected into
+    the plane."""
     x = x_hint - (x_hint @ normal) * normal
     if np.linalg.norm(x) < 1e-6:
         x = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
     x = x / np.linalg.norm(x)
-    return np.column_stack([x, np.cross(normal, x), normal]), point
+    return np.column_stack([x, np.cross(normal, x), normal])
 
 
 def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -125,7 +125,8 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
         k0, p0 = max(members, key=lambda m: by_id[m[0]][m[1]].n_points)
         plane0 = by_id[k0][p0]
         c = plane0.centroid_xyz
-        R0, o0 = _frame(plane0.normal, c - (plane0.normal @ c - plane0.d_m) * plane0.normal, plane0.basis_uv[0])
+        R0 = _frame(plane0.normal, plane0.basis_uv[0])
+        o0 = c - (plane0.normal @ c - plane0.d_m) * plane0.normal
         F = poses[k0].compose(Pose(matrix_to_quat(R0), o0))
         quats.append(F.quat_wxyz)
         origins.append(F.t_xyz)
@@ -138,7 +139,7 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
             # same plane, with normal and offset negated (its covariance is the same).
             side = 1.0 if plane.normal @ D.rotation_matrix[:, 2] >= 0 else -1.0
             normal, d = side * plane.normal, side * plane.d_m
-            R, o = _frame(normal, t - (normal @ t - d) * normal, D.rotation_matrix[:, 0])
+            R, o = _frame(normal, D.rotation_matrix[:, 0]), t - (normal @ t - d) * normal
             Z = Pose(matrix_to_quat(R), o)
             tilts, offset = plane_information(plane, R, o)
             observations.append(RelativeObservation(ObservationKind.PLANE, k, node, Z, tilts, 2))
