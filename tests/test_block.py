@@ -304,6 +304,33 @@ def test_an_adjustment_that_does_not_converge_is_a_failure_never_a_pass():
     assert not adjust_block(approx, obs, fixed, BlockConfig()).failed
 
 
+def test_a_plain_step_that_cannot_lower_the_cost_at_the_minimum_ends_the_adjustment(monkeypatch):
+    # Near the minimum the undamped step (1e-9 m) may raise the cost by rounding; damping it only
+    # shrinks it, so retrying up to the largest damping (and factorising once more for the
+    # covariances) is wasted: at 235 M points 78 of 116 factorisations. Seed 0 is such a network.
+    import kinreg.estimate.normal as normal
+
+    damping = []
+    factorize = normal.NormalEquations.factorize
+
+    def counted(self, blocks, lam=0.0):
+        damping.append(lam)
+        return factorize(self, blocks, lam)
+
+    monkeypatch.setattr(normal.NormalEquations, "factorize", counted)
+    rng = np.random.default_rng(0)
+    truth, approx, obs = network(rng)
+    fixed = np.zeros(len(approx), dtype=bool)
+    fixed[0] = True
+    result = adjust_block(approx, obs, fixed, BlockConfig(data_snooping=False, variance_components=False))
+    assert not result.failed
+    assert damping == [0.0] * result.iterations  # one undamped factor per iteration, nothing else
+    # the same minimum as a tight run that takes every step it can
+    tight = adjust_block(result.poses, obs, fixed, BlockConfig(data_snooping=False, variance_components=False))
+    np.testing.assert_allclose(tight.poses.t_xyz, result.poses.t_xyz, atol=1e-9)
+    np.testing.assert_allclose(tight.cov_xi, result.cov_xi, rtol=1e-6, atol=1e-15)
+
+
 def test_the_damped_step_recovers_from_a_start_where_gauss_newton_overshoots():
     # Headings 90 deg off: the linearisation is poor, a full Gauss-Newton step can raise the
     # cost; the damped solver must still reach the truth (within the observations' noise).
