@@ -241,11 +241,10 @@ def test_the_solve_steps_agree_with_the_poses_exp_and_log():
 
     rng = np.random.default_rng(7)
     for scale in (1e-9, 1e-6, 1e-3, 0.3):
-        for _ in range(20):
-            xi = rng.normal(0.0, scale, 6)
-            R, J = _so3(xi[3:])
-            T = Pose.exp(xi)
-            assert np.allclose(R, T.rotation_matrix, rtol=0, atol=1e-15)
-            assert np.allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-15)
-            assert np.allclose(J @ xi[:3], T.t_xyz, rtol=0, atol=1e-15 * max(1.0, scale))
-            assert np.allclose(_log(T.rotation_matrix, T.t_xyz), xi, rtol=1e-9, atol=1e-15)
+        xi = rng.normal(0.0, scale, (20, 6))  # the helpers take a stack of twists
+        R, J = _so3(xi[:, 3:])
+        T = Pose.exp(xi)
+        assert np.allclose(R, T.rotation_matrix, rtol=0, atol=1e-15)
+        assert np.allclose(R @ R.swapaxes(1, 2), np.eye(3), rtol=0, atol=1e-15)
+        assert np.allclose(np.einsum("gij,gj->gi", J, xi[:, :3]), T.t_xyz, rtol=0, atol=1e-15 * max(1.0, scale))
+        assert np.allclose(_log(T.rotation_matrix, T.t_xyz), xi, rtol=1e-9, atol=1e-15)

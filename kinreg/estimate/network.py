@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -21,7 +21,7 @@ from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticCon
 from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
-from kinreg.estimate.pairwise import adjust_pair
+from kinreg.estimate.pairwise import PairInput, adjust_pairs
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.types import (
@@ -72,16 +72,29 @@ def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
     return {(int(min(qs[a], qs[b])), int(max(qs[a], qs[b]))) for a, b in near if runs[qs[a]] != runs[qs[b]]}
 
 
-def link_pair(
-    i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
+def link_pairs(
+    pairs: Sequence[tuple[int, int]], stations: Mapping[int, Station], planes: Mapping[int, tuple[Plane, ...]],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    sigma_prior: np.ndarray | None = None,
-) -> Link | None:
-    """Match and adjust one candidate pair; ``None`` where too few planes match. The planes'
-    covariances are expected to carry the drift inside their windows already
-    (:func:`with_window_deformation`, as :func:`link_stations` passes them). The prior is the
-    stations' relative pose with ``sigma_prior`` (6,), by default the drift's over their time
-    difference."""
+    sigmas: Mapping[int, np.ndarray] | None = None,
+) -> list[Link | None]:
+    """Match and adjust candidate pairs ``(i, j)`` of ``stations``; per pair its link, ``None``
+    where too few planes match. The pairs are adjusted together (:func:`adjust_pairs`: numpy's
+    cost per call, not the arithmetic, sets the pace of a pair's solve). The planes' covariances
+    are expected to carry the drift inside their windows already (:func:`with_window_deformation`,
+    as :func:`link_stations` passes them). A pair's prior is the stations' relative pose with
+    ``hypot(sigmas[i], sigmas[j])`` (6,), by default the drift's over their time difference."""
+    inputs = [_pair_input(i, j, stations[i], stations[j], planes[i], planes[j], matching, pairwise, static,
+                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
+    links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise))
+    return [None if p is None else next(links) for p in inputs]
+
+
+def _pair_input(
+    i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
+    matching: MatchingConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
+    sigma_prior: np.ndarray | None,
+) -> PairInput | None:
+    """One pair's matches and prior, ready to adjust; ``None`` where too few planes match."""
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
     matches = match_planes(planes_i, planes_j, T_prior, matching)
     sigma = sigma_prior
@@ -105,7 +118,7 @@ def link_pair(
         sigma = pose_sigmas(static.prior_sigma_m, np.radians(static.prior_sigma_deg))
     elif si.run != sj.run:
         sigma = pose_sigmas(pairwise.cross_run_prior_sigma_m, np.radians(pairwise.cross_run_prior_sigma_deg))
-    return adjust_pair(i, j, planes_i, planes_j, T_prior, _dt(si, sj), matches, drift, pairwise, sigma_prior=sigma)
+    return PairInput(i, j, planes_i, planes_j, T_prior, _dt(si, sj), matches, sigma)
 
 
 def _directions(matches: tuple[PlaneMatch, ...], planes_i: tuple[Plane, ...]) -> int:

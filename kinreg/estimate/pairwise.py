@@ -23,7 +23,8 @@ instead of once per link.
 from __future__ import annotations
 
 import logging
-import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,164 +42,305 @@ _RANK_TOLERANCE = 1e-9
 
 
 class _Design:
-    """The observations and the linearised model of one pair for a set of matches, as arrays over
-    the matches (a pair has tens of them, a run tens of thousands of pairs a round)."""
+    """The observations and the linearised model of a group of pairs with the same number of
+    matches, stacked along a leading axis (a run solves tens of thousands of pairs a round, of
+    about six matches each: numpy's cost per call, not the arithmetic, sets the pace, so the
+    group's pairs go through each call together)."""
 
-    def __init__(self, planes_i: dict[int, Plane], planes_j: dict[int, Plane], matches: list[PlaneMatch]):
-        self.matches = matches
-        used_i = sorted({m.plane_i for m in matches})
-        used_j = sorted({m.plane_j for m in matches})
-        # Observation blocks: 3 per used plane, first those of scan i, then those of scan j.
-        self.block_i = {pid: 3 * k for k, pid in enumerate(used_i)}
-        self.block_j = {pid: 3 * (len(used_i) + k) for k, pid in enumerate(used_j)}
-        n_obs = 3 * (len(used_i) + len(used_j))
-        self.Q_ll = np.zeros((n_obs, n_obs))
-        for pid, k in self.block_i.items():
-            self.Q_ll[k:k + 3, k:k + 3] = planes_i[pid].cov_uvd
-        for pid, k in self.block_j.items():
-            self.Q_ll[k:k + 3, k:k + 3] = planes_j[pid].cov_uvd
-        self.a = [planes_i[m.plane_i] for m in matches]
-        self.b = [planes_j[m.plane_j] for m in matches]
-        self.n_a = np.array([p.normal for p in self.a]).reshape(-1, 3)
-        self.d_a = np.array([p.d_m for p in self.a])
-        self.uv_a = np.array([p.basis_uv for p in self.a]).reshape(-1, 2, 3)
-        self.n_b = np.array([p.normal for p in self.b]).reshape(-1, 3)
-        self.d_b = np.array([p.d_m for p in self.b])
-        self.uv_b = np.array([p.basis_uv for p in self.b]).reshape(-1, 2, 3)
+    def __init__(self, pairs: list[_PairState]):
+        self.pairs = pairs
+        g_count, m_count = len(pairs), len(pairs[0].active)
+        a = [p.by_id_i[m.plane_i] for p in pairs for m in p.active]
+        b = [p.by_id_j[m.plane_j] for p in pairs for m in p.active]
+        self.n_a = np.array([p.normal for p in a]).reshape(g_count, m_count, 3)
+        self.d_a = np.array([p.d_m for p in a]).reshape(g_count, m_count)
+        self.uv_a = np.array([p.basis_uv for p in a]).reshape(g_count, m_count, 2, 3)
+        self.n_b = np.array([p.normal for p in b]).reshape(g_count, m_count, 3)
+        self.d_b = np.array([p.d_m for p in b]).reshape(g_count, m_count)
+        self.uv_b = np.array([p.basis_uv for p in b]).reshape(g_count, m_count, 2, 3)
         self.skew_b = skew(self.n_b)
-        # B: rows 3k..3k+2 of match k are -I against the columns of its plane a and a block set by
-        # linearise against those of its plane b.
-        m_count = len(matches)
-        rows = np.broadcast_to(3 * np.arange(m_count)[:, None, None] + np.arange(3)[None, :, None], (m_count, 3, 3))
-        cols_i = np.array([self.block_i[m.plane_i] for m in matches], dtype=int).reshape(-1, 1, 1)
-        cols_j = np.array([self.block_j[m.plane_j] for m in matches], dtype=int).reshape(-1, 1, 1)
-        self.B_i = np.zeros((3 * m_count, n_obs))
-        self.B_i[rows, cols_i + np.arange(3)[None, None, :]] = -np.eye(3)
-        self.B_j_index = (rows, cols_j + np.arange(3)[None, None, :])
+        self.cov_a = np.array([p.cov_uvd for p in a]).reshape(g_count, m_count, 3, 3)
+        self.cov_b = np.array([p.cov_uvd for p in b]).reshape(g_count, m_count, 3, 3)
+        # Conditions of two matches that share a plane are correlated through its covariance.
+        id_a = np.array([m.plane_i for p in pairs for m in p.active]).reshape(g_count, m_count)
+        id_b = np.array([m.plane_j for p in pairs for m in p.active]).reshape(g_count, m_count)
+        self.same_a = (id_a[:, :, None] == id_a[:, None, :])[..., None, None]
+        self.same_b = (id_b[:, :, None] == id_b[:, None, :])[..., None, None]
+        self.p_prior = np.array([p.p_prior for p in pairs])
+        self.R_prior = np.array([p.R_prior for p in pairs])
+        self.t_prior = np.array([p.t_prior for p in pairs])
+
+    def take(self, index: np.ndarray) -> _Design:
+        """The design of the pairs at ``index`` (those still iterating)."""
+        part = object.__new__(_Design)
+        part.__dict__.update({k: v if k == "pairs" else v[index] for k, v in self.__dict__.items()})
+        return part
 
     def linearise(self, R: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Misclosures w (3m,), A = dc/dxi (3m, 6) and B = dc/dl (3m, n_obs) at ``T = (R, t)``."""
-        m_count = len(self.matches)
-        m = self.n_b @ R.T  # R n_b of every match
-        w = np.empty((m_count, 3))
-        w[:, :2] = np.einsum("kci,ki->kc", self.uv_a, m - self.n_a)
-        w[:, 2] = self.d_b + m @ t - self.d_a
-        dm_dphi = -(R @ self.skew_b)  # (m, 3, 3)
-        A = np.zeros((m_count, 3, 6))
-        A[:, :2, 3:] = np.einsum("kci,kij->kcj", self.uv_a, dm_dphi)
-        A[:, 2, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
-        A[:, 2, 3:] = t @ dm_dphi
-        B = self.B_i.copy()
-        Ruv_b = self.uv_b @ R.T  # (m, 2, 3): R u_b, R v_b
-        block = np.zeros((m_count, 3, 3))
-        block[:, :2, :2] = np.einsum("kci,kdi->kcd", self.uv_a, Ruv_b)
-        block[:, 2, :2] = Ruv_b @ t
-        block[:, 2, 2] = 1.0
-        B[self.B_j_index] = block
-        return w.reshape(-1), A.reshape(-1, 6), B
+        """Misclosures w (g, 3m), A = dc/dxi (g, 3m, 6) and the conditions' covariance
+        Q_ww = B Q_ll B^T (g, 3m, 3m) at ``T = (R, t)`` (g, 3, 3), (g, 3)."""
+        g_count, m_count = self.d_a.shape
+        m = self.n_b @ R.swapaxes(1, 2)  # R n_b of every match
+        w = np.empty((g_count, m_count, 3))
+        w[..., :2] = np.einsum("gkci,gki->gkc", self.uv_a, m - self.n_a)
+        w[..., 2] = self.d_b + np.einsum("gki,gi->gk", m, t) - self.d_a
+        dm_dphi = -(R[:, None] @ self.skew_b)  # (g, m, 3, 3)
+        A = np.zeros((g_count, m_count, 3, 6))
+        A[..., :2, 3:] = np.einsum("gkci,gkij->gkcj", self.uv_a, dm_dphi)
+        A[..., 2, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
+        A[..., 2, 3:] = np.einsum("gi,gkij->gkj", t, dm_dphi)
+        # B is -I against the observations of plane a and J against those of plane b, so that
+        # B Q_ll B^T is C_a where two matches share plane a and J_k C_b J_l^T where they share b
+        # (forming B over all observations cost more than these blocks).
+        Ruv_b = self.uv_b @ R[:, None].swapaxes(2, 3)  # (g, m, 2, 3): R u_b, R v_b
+        J = np.zeros((g_count, m_count, 3, 3))
+        J[..., :2, :2] = np.einsum("gkci,gkdi->gkcd", self.uv_a, Ruv_b)
+        J[..., 2, :2] = np.einsum("gkci,gi->gkc", Ruv_b, t)
+        J[..., 2, 2] = 1.0
+        JC = J @ self.cov_b
+        Q = self.same_a * self.cov_a[:, :, None] + self.same_b * np.einsum("gkac,glbc->gklab", JC, J)
+        Q_ww = Q.transpose(0, 1, 3, 2, 4).reshape(g_count, 3 * m_count, 3 * m_count)
+        return w.reshape(g_count, -1), A.reshape(g_count, -1, 6), Q_ww
 
 
 def _pinv_symmetric(Q: FloatArray) -> FloatArray:
-    """``np.linalg.pinv(Q, hermitian=True)`` of a symmetric ``Q`` from its eigenvectors, without
-    the SVD wrapper's cost (the same cutoff, 1e-15 of the largest eigenvalue's size)."""
+    """``np.linalg.pinv(Q, hermitian=True)`` of symmetric matrices ``Q`` (..., n, n) from their
+    eigenvectors, without the SVD wrapper's cost (the same cutoff, 1e-15 of each matrix's largest
+    eigenvalue's size)."""
     eigval, eigvec = np.linalg.eigh(Q)
     size = np.abs(eigval)
-    large = size > 1e-15 * size.max(initial=0.0)
+    large = size > 1e-15 * size.max(axis=-1, keepdims=True, initial=0.0)
     inverse = np.divide(1.0, eigval, out=np.zeros_like(eigval), where=large)
-    return (eigvec * inverse) @ eigvec.T
+    return (eigvec * inverse[..., None, :]) @ eigvec.swapaxes(-1, -2)
 
 
-def _so3(phi: np.ndarray) -> tuple[FloatArray, FloatArray]:
-    """The rotation matrix of the rotation vector ``phi`` (3,) and its left Jacobian:
-    :meth:`Pose.exp`'s formulas for one small twist, without the quaternions between them
-    (a pair's solve takes a handful of steps, and the poses' general code cost more than the rest)."""
-    x, y, z = phi.tolist()
-    theta = math.sqrt(x * x + y * y + z * z)
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    if theta < 1e-5:
-        a, b, c = 1.0 - theta**2 / 6.0, 0.5 - theta**2 / 24.0, 1.0 / 6.0 - theta**2 / 120.0
-    else:
-        a, b, c = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta**2, (theta - math.sin(theta)) / theta**3
+def _so3(phi: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The rotation matrices of rotation vectors ``phi`` (g, 3) and their left Jacobians:
+    :meth:`Pose.exp`'s formulas for small twists, without the quaternions between them."""
+    theta = np.sqrt(np.sum(phi * phi, axis=-1))
+    small = theta < 1e-5
+    safe = np.where(small, 1.0, theta)  # the series below 1e-5, where the closed forms cancel
+    a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
+    c = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (safe - np.sin(safe)) / safe**3)
+    K = skew(phi)
     K2 = K @ K
-    return _EYE3 + a * K + b * K2, _EYE3 + b * K + c * K2
+    return (_EYE3 + a[:, None, None] * K + b[:, None, None] * K2,
+            _EYE3 + b[:, None, None] * K + c[:, None, None] * K2)
 
 
 def _log(R: FloatArray, t: FloatArray) -> FloatArray:
-    """The twist ``(rho, phi)`` (6,) of the pose ``(R, t)``, as :meth:`Pose.log` (angles below pi)."""
-    v = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])  # sin(angle) axis
-    sine = math.sqrt(float(v @ v))
-    theta = math.atan2(sine, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
-    phi = v * (theta / sine) if sine > 0.0 else v
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-    if theta < 1e-5:
-        c = 1.0 / 12.0 + theta**2 / 720.0
-    else:
-        c = 1.0 / theta**2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
-    return np.concatenate([(_EYE3 - 0.5 * K + c * (K @ K)) @ t, phi])
+    """The twists ``(rho, phi)`` (g, 6) of the poses ``(R, t)``, as :meth:`Pose.log` (angles
+    below pi)."""
+    v = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=-1)
+    sine = np.sqrt(np.sum(v * v, axis=-1))  # v is the axis times the sine of the angle
+    theta = np.arctan2(sine, 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0))
+    phi = v * np.divide(theta, sine, out=np.ones_like(sine), where=sine > 0.0)[:, None]
+    small = theta < 1e-5
+    safe = np.where(small, 1.0, theta)
+    c = np.where(small, 1.0 / 12.0 + theta**2 / 720.0,
+                 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    K = skew(phi)
+    V = _EYE3 - 0.5 * K + c[:, None, None] * (K @ K)
+    return np.concatenate([np.einsum("gij,gj->gi", V, t), phi], axis=-1)
 
 
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
 
 
-def _solve(design: _Design, T_prior: Pose, P_prior: FloatArray, max_iterations: int) -> dict:
+def _solve(design: _Design, max_iterations: int) -> dict:
+    """Gauss-Newton for every pair of the group; a pair stops iterating at its own convergence,
+    so its steps are those it would take alone."""
     # The iterate as a rotation matrix and a translation: T <- T exp(step), xi = log(T_prior^-1 T).
-    R_prior, t_prior = T_prior.rotation_matrix, T_prior.t_xyz
-    R, t = R_prior, t_prior
-    xi = np.zeros(6)
+    R, t = design.R_prior.copy(), design.t_prior.copy()
+    xi = np.zeros((len(R), 6))
+    running = np.arange(len(R))
     for _ in range(max_iterations):
-        w, A, B = design.linearise(R, t)
-        Q_ww = B @ design.Q_ll @ B.T
+        part = design if len(running) == len(R) else design.take(running)
+        w, A, Q_ww = part.linearise(R[running], t[running])
         # pinv: conditions that repeat one another (one plane matched to two coplanar patches
         # twice over) leave Q_ww singular; they then count once.
         W = _pinv_symmetric(Q_ww)
-        AtW = A.T @ W
-        N_p = AtW @ A
-        N = N_p + P_prior
-        step = np.linalg.solve(N, -(AtW @ w + P_prior @ xi))
-        R_step, J_step = _so3(step[3:])
-        R, t = R @ R_step, R @ (J_step @ step[:3]) + t
-        xi = _log(R_prior.T @ R, R_prior.T @ (t - t_prior))
-        if np.max(np.abs(step)) < 1e-11:
+        AtW = A.swapaxes(1, 2) @ W
+        N = AtW @ A + _diag(part.p_prior)
+        rhs = -(np.einsum("gij,gj->gi", AtW, w) + part.p_prior * xi[running])
+        step = np.linalg.solve(N, rhs[..., None])[..., 0]
+        R_step, J_step = _so3(step[:, 3:])
+        R_now, t_now = R[running], t[running]
+        R[running] = R_now @ R_step
+        t[running] = np.einsum("gij,gj->gi", R_now, np.einsum("gij,gj->gi", J_step, step[:, :3])) + t_now
+        R_prior_T = part.R_prior.swapaxes(1, 2)
+        xi[running] = _log(R_prior_T @ R[running], np.einsum("gij,gj->gi", R_prior_T, t[running] - part.t_prior))
+        running = running[np.max(np.abs(step), axis=1) >= 1e-11]
+        if len(running) == 0:
             break
-    w, A, B = design.linearise(R, t)
-    Q_ww = B @ design.Q_ll @ B.T
+    w, A, Q_ww = design.linearise(R, t)
     W = _pinv_symmetric(Q_ww)
-    N_p = A.T @ W @ A
-    Q_xx = np.linalg.inv(N_p + P_prior)
-    Q_ee = Q_ww - A @ Q_xx @ A.T
-    # The quaternion on the prior's side, as composing small steps onto the prior's kept it.
-    q = matrix_to_quat(R)
-    T = Pose(-q if float(q @ T_prior.quat_wxyz) < 0.0 else q, t)
-    return {"T": T, "xi": xi, "w": w, "A": A, "W": W, "N_p": N_p, "Q_xx": Q_xx,
-            "Q_ee": Q_ee, "omega": float(w @ W @ w + xi @ P_prior @ xi)}
+    AtW = A.swapaxes(1, 2) @ W
+    N_p = AtW @ A
+    Q_xx = np.linalg.inv(N_p + _diag(design.p_prior))
+    Q_ee = Q_ww - A @ Q_xx @ A.swapaxes(1, 2)
+    omega = np.einsum("gi,gij,gj->g", w, W, w) + np.einsum("gi,gi,gi->g", xi, design.p_prior, xi)
+    return {"R": R, "t": t, "xi": xi, "w": w, "AtW": AtW, "N_p": N_p, "Q_xx": Q_xx, "Q_ee": Q_ee,
+            "omega": omega}
 
 
-def _match_statistics(sol: dict, n_matches: int) -> tuple[FloatArray, FloatArray]:
-    """Per match: the 3-dof test statistic e^T Q_ee^+ e, and the largest normalised residual."""
-    e = sol["w"].reshape(n_matches, 3)
-    k = np.arange(n_matches)
-    blocks = sol["Q_ee"].reshape(n_matches, 3, n_matches, 3)[k, :, k, :]  # (m, 3, 3) diagonal blocks
-    test = np.einsum("ki,kij,kj->k", e, np.linalg.pinv(blocks, rcond=1e-10), e)
-    diag = np.diagonal(blocks, axis1=1, axis2=2)
-    normalised = np.max(np.abs(e) / np.sqrt(np.maximum(diag, 1e-30)), axis=1)
+def _diag(p: FloatArray) -> FloatArray:
+    """Diagonal matrices (g, n, n) of ``p`` (g, n)."""
+    out = np.zeros((*p.shape, p.shape[-1]))
+    np.einsum("gii->gi", out)[...] = p
+    return out
+
+
+def _match_statistics(sol: dict) -> tuple[FloatArray, FloatArray]:
+    """Per pair and match (g, m): the 3-dof test statistic e^T Q_ee^+ e, and the largest
+    normalised residual."""
+    g_count = len(sol["w"])
+    e = sol["w"].reshape(g_count, -1, 3)
+    m_count = e.shape[1]
+    Q = sol["Q_ee"].reshape(g_count, m_count, 3, m_count, 3)
+    blocks = np.moveaxis(np.diagonal(Q, axis1=1, axis2=3), -1, 1)  # (g, m, 3, 3) diagonal blocks
+    test = np.einsum("gki,gkij,gkj->gk", e, np.linalg.pinv(blocks, rcond=1e-10), e)
+    diag = np.diagonal(blocks, axis1=2, axis2=3)
+    normalised = np.max(np.abs(e) / np.sqrt(np.maximum(diag, 1e-30)), axis=2)
     return test, normalised
 
 
-def _plane_only(sol: dict) -> tuple[Pose, FloatArray, int, FloatArray]:
-    """Plane-only estimate: the pose the planes alone point to (moved only along determined
-    directions), the information matrix, its rank, and per-axis standard deviations."""
-    N_p = 0.5 * (sol["N_p"] + sol["N_p"].T)
+def _plane_only(sol: dict, T: Pose) -> tuple[Pose, FloatArray, FloatArray, FloatArray]:
+    """Plane-only estimates of the group's pairs at poses ``T``: the poses the planes alone point
+    to (moved only along determined directions), the information matrices, their ranks, and
+    per-axis standard deviations."""
+    N_p = 0.5 * (sol["N_p"] + sol["N_p"].swapaxes(1, 2))
     eigval, eigvec = np.linalg.eigh(N_p)
-    determined = eigval > _RANK_TOLERANCE * max(float(eigval[-1]), 1e-300)
-    rank = int(np.count_nonzero(determined))
-    g = sol["A"].T @ sol["W"] @ sol["w"]
-    inv = (eigvec[:, determined] / eigval[determined]) @ eigvec[:, determined].T
-    step = -inv @ g
-    T_planes = sol["T"].compose(Pose.exp(step))
-    null_share = np.sum(eigvec[:, ~determined] ** 2, axis=1)
-    axis_sigma = np.where(null_share > 1e-2, np.inf, np.sqrt(np.maximum(np.diag(inv), 0.0)))
+    determined = eigval > _RANK_TOLERANCE * np.maximum(eigval[:, -1:], 1e-300)
+    rank = np.count_nonzero(determined, axis=1)
+    g = np.einsum("gij,gj->gi", sol["AtW"], sol["w"])
+    inverse = np.divide(1.0, eigval, out=np.zeros_like(eigval), where=determined)
+    inv = (eigvec * inverse[:, None, :]) @ eigvec.swapaxes(1, 2)
+    step = -np.einsum("gij,gj->gi", inv, g)
+    T_planes = T.compose(Pose.exp(step))
+    null_share = np.sum(np.where(determined[:, None, :], 0.0, eigvec**2), axis=2)
+    axis_sigma = np.where(null_share > 1e-2, np.inf, np.sqrt(np.maximum(np.diagonal(inv, axis1=1, axis2=2), 0.0)))
     return T_planes, N_p, rank, axis_sigma
+
+
+@dataclass(frozen=True, eq=False)
+class PairInput:
+    """One pair for :func:`adjust_pairs`: the arguments of :func:`adjust_pair` but the configs."""
+
+    scan_i: int
+    scan_j: int
+    planes_i: tuple[Plane, ...]
+    planes_j: tuple[Plane, ...]
+    T_prior: Pose
+    dt_s: float
+    matches: tuple[PlaneMatch, ...]
+    sigma_prior: FloatArray | None = None
+
+
+class _PairState:
+    """A pair between rounds of data snooping: its prior and the matches still in."""
+
+    def __init__(self, pair: PairInput, drift: DriftConfig, config: PairwiseConfig):
+        self.pair = pair
+        self.sigma_prior = drift_sigmas(abs(pair.dt_s), drift) if pair.sigma_prior is None else pair.sigma_prior
+        self.p_prior = 1.0 / self.sigma_prior**2
+        self.R_prior, self.t_prior = pair.T_prior.rotation_matrix, pair.T_prior.t_xyz
+        self.by_id_i = {p.plane_id: p for p in pair.planes_i}
+        self.by_id_j = {p.plane_id: p for p in pair.planes_j}
+        # A plane pair stated twice would make two identical conditions (a singular Q_ww).
+        self.active = list({(m.plane_i, m.plane_j): m for m in pair.matches}.values())
+        self.rejected: list[PlaneMatch] = []
+        self.max_rejected = int(np.floor(config.max_rejected_share * len(pair.matches)))
+
+    def prior_only(self) -> Link:
+        """The link of a pair without a usable match: the prior alone, zero plane information."""
+        p = self.pair
+        return Link(p.scan_i, p.scan_j, LinkStatus.PRIOR_ONLY, p.T_prior, np.diag(self.sigma_prior**2), p.T_prior,
+                    p.T_prior, np.zeros((6, 6)), 0, np.full(6, np.inf), 0, float("nan"), 0, True, (),
+                    tuple(self.rejected), 0.0, p.dt_s)
+
+
+def adjust_pairs(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig) -> list[Link]:
+    """:func:`adjust_pair` for many pairs at once, in their order: pairs with the same number of
+    matches are solved together on stacked arrays, each with its own iterations and data
+    snooping, so each link is the one :func:`adjust_pair` gives (up to rounding)."""
+    states = [_PairState(pair, drift, config) for pair in pairs]
+    links: list[Link | None] = [None if s.active else s.prior_only() for s in states]
+    critical = chi2_quantile(1.0 - config.alpha, 3)
+    pending = [k for k, s in enumerate(states) if s.active]
+    while pending:
+        groups: dict[int, list[int]] = {}
+        for k in pending:
+            groups.setdefault(len(states[k].active), []).append(k)
+        pending = []
+        for members in groups.values():
+            design = _Design([states[k] for k in members])
+            sol = _solve(design, config.max_iterations)
+            test, normalised = _match_statistics(sol)
+            worst = np.argmax(test, axis=1)
+            done = []
+            for g, k in enumerate(members):
+                s = states[k]
+                if test[g, worst[g]] <= critical or len(s.rejected) >= s.max_rejected:
+                    done.append(g)
+                    continue
+                log.debug("link %d-%d: rejected plane pair %s (test %.1f > %.1f)", s.pair.scan_i, s.pair.scan_j,
+                          s.active[worst[g]], test[g, worst[g]], critical)
+                s.rejected.append(s.active.pop(worst[g]))
+                if s.active:
+                    pending.append(k)
+                else:
+                    links[k] = s.prior_only()
+            if done:
+                index = np.array(done)
+                kept = {key: value[index] for key, value in sol.items()}
+                for k, link in zip([members[g] for g in done], _links([states[members[g]] for g in done], kept,
+                                                                        normalised[index], config), strict=True):
+                    links[k] = link
+    return links  # type: ignore[return-value]
+
+
+def _links(states: list[_PairState], sol: dict, normalised: FloatArray, config: PairwiseConfig) -> list[Link]:
+    """The links of pairs whose data snooping has finished, from their group's solution."""
+    # The quaternion on the prior's side, as composing small steps onto the prior's kept it.
+    q = matrix_to_quat(sol["R"])
+    q_prior = np.array([s.pair.T_prior.quat_wxyz for s in states])
+    q = np.where(np.sum(q * q_prior, axis=1, keepdims=True) < 0.0, -q, q)
+    T = Pose(q, sol["t"])
+    T_planes, N_p, rank, axis_sigma = _plane_only(sol, T)
+    links = []
+    for g, s in enumerate(states):
+        redundancy = 3 * len(s.active)
+        omega = float(sol["omega"][g])
+        passed = bool(omega <= chi2_quantile(1.0 - config.alpha, redundancy))
+        R_i = np.array([s.by_id_i[m.plane_i].normal for m in s.active])
+        # A failed global test alone is reported, not fatal (it happens at rate alpha by chance); a
+        # link is rejected when snooping hit its cap and the test still fails: too many wrong matches.
+        status = (LinkStatus.REJECTED if (not passed and len(s.rejected) >= max(s.max_rejected, 1))
+                  else LinkStatus.OK)
+        links.append(Link(
+            scan_i=s.pair.scan_i,
+            scan_j=s.pair.scan_j,
+            status=status,
+            T_i_j=T[g],
+            cov_xi=sol["Q_xx"][g],
+            T_i_j_prior=s.pair.T_prior,
+            T_i_j_planes=T_planes[g],
+            info_planes=N_p[g],
+            rank=int(rank[g]),
+            axis_sigma_planes=axis_sigma[g],
+            n_directions=count_directions(R_i),
+            sigma0=float(np.sqrt(omega / redundancy)),
+            redundancy=redundancy,
+            global_test_passed=passed,
+            matches=tuple(s.active),
+            rejected=tuple(s.rejected),
+            max_normalised_residual=float(normalised[g].max()),
+            dt_s=s.pair.dt_s,
+        ))
+    return links
 
 
 def adjust_pair(
@@ -220,59 +362,5 @@ def adjust_pair(
     Returns a :class:`Link`; with no usable match its status is ``PRIOR_ONLY`` and it carries
     the prior alone (zero plane information).
     """
-    if sigma_prior is None:
-        sigma_prior = drift_sigmas(abs(dt_s), drift)
-    P_prior = np.diag(1.0 / sigma_prior**2)
-    by_id_i = {p.plane_id: p for p in planes_i}
-    by_id_j = {p.plane_id: p for p in planes_j}
-    # A plane pair stated twice would make two identical conditions (a singular Q_ww).
-    active = list({(m.plane_i, m.plane_j): m for m in matches}.values())
-    rejected: list[PlaneMatch] = []
-    max_rejected = int(np.floor(config.max_rejected_share * len(matches)))
-    sol: dict | None = None
-    normalised = np.zeros(0)
-    while active:
-        sol = _solve(_Design(by_id_i, by_id_j, active), T_prior, P_prior, config.max_iterations)
-        test, normalised = _match_statistics(sol, len(active))
-        critical = chi2_quantile(1.0 - config.alpha, 3)
-        worst = int(np.argmax(test))
-        if test[worst] <= critical or len(rejected) >= max_rejected:
-            break
-        log.debug("link %d-%d: rejected plane pair %s (test %.1f > %.1f)", scan_i, scan_j, active[worst],
-                  test[worst], critical)
-        rejected.append(active.pop(worst))
-        sol = None
-
-    if sol is None:
-        zeros = np.zeros((6, 6))
-        return Link(scan_i, scan_j, LinkStatus.PRIOR_ONLY, T_prior, np.diag(sigma_prior**2), T_prior, T_prior,
-                    zeros, 0, np.full(6, np.inf), 0, float("nan"), 0, True, (), tuple(rejected), 0.0, dt_s)
-
-    redundancy = 3 * len(active)
-    sigma0 = float(np.sqrt(sol["omega"] / redundancy))
-    passed = bool(sol["omega"] <= chi2_quantile(1.0 - config.alpha, redundancy))
-    T_planes, N_p, rank, axis_sigma = _plane_only(sol)
-    R_i = np.array([by_id_i[m.plane_i].normal for m in active])
-    # A failed global test alone is reported, not fatal (it happens at rate alpha by chance); a link
-    # is rejected when snooping hit its cap and the test still fails: too many wrong matches.
-    status = LinkStatus.REJECTED if (not passed and len(rejected) >= max(max_rejected, 1)) else LinkStatus.OK
-    return Link(
-        scan_i=scan_i,
-        scan_j=scan_j,
-        status=status,
-        T_i_j=sol["T"],
-        cov_xi=sol["Q_xx"],
-        T_i_j_prior=T_prior,
-        T_i_j_planes=T_planes,
-        info_planes=N_p,
-        rank=rank,
-        axis_sigma_planes=axis_sigma,
-        n_directions=count_directions(R_i),
-        sigma0=sigma0,
-        redundancy=redundancy,
-        global_test_passed=passed,
-        matches=tuple(active),
-        rejected=tuple(rejected),
-        max_normalised_residual=float(normalised.max()),
-        dt_s=dt_s,
-    )
+    return adjust_pairs([PairInput(scan_i, scan_j, planes_i, planes_j, T_prior, dt_s, matches, sigma_prior)],
+                        drift, config)[0]
