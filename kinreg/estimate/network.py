@@ -20,7 +20,13 @@ from scipy.spatial import cKDTree
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
-from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
+from kinreg.estimate.matching import (
+    StationPlanes,
+    candidate_pairs,
+    coarse_translation,
+    count_directions,
+    match_planes,
+)
 from kinreg.estimate.pairwise import adjust_pair
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
@@ -75,15 +81,17 @@ def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
 def link_pair(
     i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    sigma_prior: np.ndarray | None = None,
+    sigma_prior: np.ndarray | None = None, matchable: tuple[StationPlanes, StationPlanes] | None = None,
 ) -> Link | None:
     """Match and adjust one candidate pair; ``None`` where too few planes match. The planes'
     covariances are expected to carry the drift inside their windows already
     (:func:`with_window_deformation`, as :func:`link_stations` passes them). The prior is the
     stations' relative pose with ``sigma_prior`` (6,), by default the drift's over their time
-    difference."""
+    difference. ``matchable``: the same planes as :class:`StationPlanes`, formed once for all the
+    pairs of a station."""
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
-    matches = match_planes(planes_i, planes_j, T_prior, matching)
+    match_i, match_j = matchable or (planes_i, planes_j)
+    matches = match_planes(match_i, match_j, T_prior, matching)
     sigma = sigma_prior
     if matching.max_jump_m > 0 and _directions(matches, planes_i) < 3:
         # Robust step: the trajectory may have jumped between the two scans, so that the planes
@@ -91,7 +99,7 @@ def link_pair(
         tau = coarse_translation(planes_i, planes_j, T_prior, matching)
         if tau is not None and np.linalg.norm(tau) > matching.max_offset_m:
             shifted = Pose(np.array([1.0, 0, 0, 0]), tau).compose(T_prior)
-            realigned = match_planes(planes_i, planes_j, shifted, matching)
+            realigned = match_planes(match_i, match_j, shifted, matching)
             if (len(realigned) >= matching.min_matches
                     and _directions(realigned, planes_i) > _directions(matches, planes_i)):
                 log.info("pair %s-%s: trajectory off by %.3f m; linked after a translation search",

@@ -34,6 +34,7 @@ from kinreg.estimate.drift import (
     with_window_bias,
     with_window_deformation,
 )
+from kinreg.estimate.matching import StationPlanes
 from kinreg.estimate.network import Network, link_pair, station_pairs
 from kinreg.estimate.plane_nodes import plane_clusters
 from kinreg.estimate.planes import detect_planes
@@ -372,8 +373,10 @@ _TILE = 8  # stations: see link_stations
 def _link_batch(task: tuple) -> list[Link | None]:
     """A batch of pairs (a top-level function: it runs on worker processes)."""
     pairs, stations, planes, (matching, drift, pairwise, static), sigmas = task
+    matchable = {k: StationPlanes(p) for k, p in planes.items()}  # once per station, not once per pair
     return [link_pair(i, j, stations[i], stations[j], planes[i], planes[j], matching, drift, pairwise, static,
-                      sigma_prior=None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
+                      sigma_prior=None if sigmas is None else np.hypot(sigmas[i], sigmas[j]),
+                      matchable=(matchable[i], matchable[j])) for i, j in pairs]
 
 
 def link_stations(
