@@ -12,7 +12,7 @@ catches what slips through.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import overload
 
 import numpy as np
@@ -133,7 +133,7 @@ def _coplanar_groups(normals: FloatArray, d_m: FloatArray, config: MatchingConfi
 
 class StationPlanes(Sequence[Plane]):
     """One station's planes, with the arrays :func:`match_planes` works on formed once for all the
-    pairs the station is in: normals (k, 3), offsets (k,), centroids (k, 3), each plane's box
+    pairs the station is in: normals (k, 3), offsets (k,), centroids (k, 3), hulls, each plane's box
     (umin, vmin, umax, vmax) in its own tangent basis about its centroid, and (on first use, per
     coplanarity setting) the coplanar groups. Indexed, iterated and counted as the planes."""
 
@@ -142,6 +142,7 @@ class StationPlanes(Sequence[Plane]):
         self.normals = np.array([p.normal for p in planes])
         self.d_m = np.array([p.d_m for p in planes])
         self.centroids_xyz = np.array([p.centroid_xyz for p in planes])
+        self.hulls_xyz = [np.asarray(p.hull_xyz, dtype=np.float64) for p in planes]
         self.boxes = [_box_in_plane(p.hull_xyz, c, p.basis_uv[0], p.basis_uv[1])
                       for p, c in zip(planes, self.centroids_xyz, strict=True)]
         self._groups: dict[tuple[float, float], np.ndarray] = {}
@@ -201,7 +202,7 @@ def match_planes(
     for a, b, angle_ab, offset_ab in zip(gated_a.tolist(), gated_b.tolist(), angle[gated_a, gated_b].tolist(),
                                          offset[gated_a, gated_b].tolist(), strict=True):
         if b not in hulls_b:
-            hulls_b[b] = np.asarray(sj.planes[b].hull_xyz, dtype=np.float64) @ R_i_j.T + t_i_j  # T_i_j.apply
+            hulls_b[b] = sj.hulls_xyz[b] @ R_i_j.T + t_i_j  # T_i_j.apply
         u, v = si.planes[a].basis_uv
         share = _overlap_share(si.boxes[a], _box_in_plane(hulls_b[b], c_a[a], u, v))
         if share >= config.min_overlap:
@@ -209,22 +210,26 @@ def match_planes(
 
     # Each plane of i keeps only its candidates on one physical plane of j, then each plane of j
     # its candidates on one physical plane of i.
-    kept = _one_plane_each(candidates, _coplanar_groups(n_b, d_b, config).tolist(), 0, config)
-    kept = _one_plane_each(kept, si.groups(config).tolist(), 1, config)
+    kept = _one_plane_each(candidates, lambda: _coplanar_groups(n_b, d_b, config).tolist(), 0, config)
+    kept = _one_plane_each(kept, lambda: si.groups(config).tolist(), 1, config)
     return tuple(PlaneMatch(si.planes[a].plane_id, sj.planes[b].plane_id, angle_deg, offset_m, share)
                  for (a, b), angle_deg, offset_m, share in sorted(kept))
 
 
-def _one_plane_each(candidates: list[_Candidate], groups_of_other: list[int], own: int,
+def _one_plane_each(candidates: list[_Candidate], other_groups: Callable[[], list[int]], own: int,
                     config: MatchingConfig) -> list[_Candidate]:
     """The candidates ((a, b), angle, offset, share) left when every plane on side ``own`` (0: a,
-    1: b) keeps those on the physical plane (coplanar group ``groups_of_other`` of the other
+    1: b) keeps those on the physical plane (coplanar group, from ``other_groups()``, of the other
     side's plane) of its best (smallest offset) candidate, and only where no candidate on another
-    physical plane comes close to it (then it keeps none). In the order given."""
+    physical plane comes close to it (then it keeps none). In the order given. ``other_groups`` is
+    called only where a plane has more than one candidate."""
     other = 1 - own
     mine: dict[int, list[_Candidate]] = {}
     for c in candidates:
         mine.setdefault(c[0][own], []).append(c)
+    if len(mine) == len(candidates):  # one candidate each: nothing to choose between
+        return candidates
+    groups_of_other = other_groups()
     chosen: dict[int, int] = {}  # plane -> the group it keeps
     for k, cands in mine.items():
         best: dict[int, float] = {}  # the best offset on each physical plane
@@ -235,6 +240,8 @@ def _one_plane_each(candidates: list[_Candidate], groups_of_other: list[int], ow
             first, second = sorted(best.values())[:2]
             if not second > _AMBIGUITY_RATIO * first + config.coplanar_offset_m:
                 continue
+        # Two physical planes tied for the best never get here (ambiguous), so the order of
+        # the candidates does not choose between them.
         chosen[k] = groups_of_other[min(cands, key=lambda c: c[2])[0][other]]
     return [c for c in candidates if chosen.get(c[0][own]) == groups_of_other[c[0][other]]]
 
