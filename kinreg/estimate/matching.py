@@ -132,10 +132,10 @@ def _coplanar_groups(normals: FloatArray, d_m: FloatArray, config: MatchingConfi
 
 
 class StationPlanes(Sequence[Plane]):
-    """One station's planes, with the arrays :func:`match_planes` works on formed once for all the
-    pairs the station is in: normals (k, 3), offsets (k,), centroids (k, 3), hulls, each plane's box
-    (umin, vmin, umax, vmax) in its own tangent basis about its centroid, and (on first use, per
-    coplanarity setting) the coplanar groups. Indexed, iterated and counted as the planes."""
+    """One station's planes, with what :func:`match_planes` works on formed once for all the pairs
+    the station is in: normals (k, 3), offsets (k,), centroids (k, 3) and hulls; on first use each
+    plane's box (:meth:`box`) and the coplanar groups (:meth:`groups`). Indexed, iterated and
+    counted as the planes."""
 
     def __init__(self, planes: tuple[Plane, ...]) -> None:
         self.planes = planes
@@ -143,9 +143,16 @@ class StationPlanes(Sequence[Plane]):
         self.d_m = np.array([p.d_m for p in planes])
         self.centroids_xyz = np.array([p.centroid_xyz for p in planes])
         self.hulls_xyz = [np.asarray(p.hull_xyz, dtype=np.float64) for p in planes]
-        self.boxes = [_box_in_plane(p.hull_xyz, c, p.basis_uv[0], p.basis_uv[1])
-                      for p, c in zip(planes, self.centroids_xyz, strict=True)]
+        self._boxes: list[tuple[float, ...] | None] = [None] * len(planes)
         self._groups: dict[tuple[float, float], np.ndarray] = {}
+
+    def box(self, k: int) -> tuple[float, ...]:
+        """Plane k's box (umin, vmin, umax, vmax) in its own tangent basis about its centroid."""
+        box = self._boxes[k]
+        if box is None:
+            plane = self.planes[k]
+            box = self._boxes[k] = _box_in_plane(plane.hull_xyz, self.centroids_xyz[k], *plane.basis_uv)
+        return box
 
     def groups(self, config: MatchingConfig) -> np.ndarray:
         """The planes' coplanar groups (:func:`_coplanar_groups`) under ``config``."""
@@ -204,7 +211,7 @@ def match_planes(
         if b not in hulls_b:
             hulls_b[b] = sj.hulls_xyz[b] @ R_i_j.T + t_i_j  # T_i_j.apply
         u, v = si.planes[a].basis_uv
-        share = _overlap_share(si.boxes[a], _box_in_plane(hulls_b[b], c_a[a], u, v))
+        share = _overlap_share(si.box(a), _box_in_plane(hulls_b[b], c_a[a], u, v))
         if share >= config.min_overlap:
             candidates.append(((a, b), angle_ab, offset_ab, share))
 
