@@ -12,6 +12,8 @@ catches what slips through.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable, Sequence
+from typing import overload
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -23,6 +25,8 @@ from kinreg.types import Plane, PlaneMatch
 # A candidate on another physical plane must be this much worse (in offset) than the best one
 # before the best is trusted; otherwise the plane is left unmatched.
 _AMBIGUITY_RATIO = 3.0
+
+_Candidate = tuple[tuple[int, int], float, float, float]  # (plane a, plane b), angle, offset, overlap share
 
 
 def candidate_pairs(positions_xyz: FloatArray, config: MatchingConfig) -> list[tuple[int, int]]:
@@ -84,17 +88,15 @@ def transform_planes(normals: FloatArray, d_m: FloatArray, T_i_j: Pose) -> tuple
     return n_i, d_m + n_i @ T_i_j.t_xyz
 
 
-def _plane_frame(plane: Plane) -> tuple[FloatArray, FloatArray]:
-    return plane.basis_uv[0], plane.basis_uv[1]
-
-
-def _box_in_plane(points: FloatArray, origin: FloatArray, u: FloatArray, v: FloatArray) -> FloatArray:
+def _box_in_plane(points: FloatArray, origin: FloatArray, u: FloatArray, v: FloatArray) -> tuple[float, ...]:
+    """(umin, vmin, umax, vmax) of ``points`` (k, 3) about ``origin`` along ``u`` and ``v``."""
     local = points - origin
     along_u, along_v = local @ u, local @ v
-    return np.array([along_u.min(), along_v.min(), along_u.max(), along_v.max()])
+    return (float(np.minimum.reduce(along_u)), float(np.minimum.reduce(along_v)),
+            float(np.maximum.reduce(along_u)), float(np.maximum.reduce(along_v)))
 
 
-def _overlap_share(box_a: FloatArray, box_b: FloatArray) -> float:
+def _overlap_share(box_a: tuple[float, ...], box_b: tuple[float, ...]) -> float:
     """Overlapping area of two (umin, vmin, umax, vmax) boxes over the smaller box's area."""
     du = min(box_a[2], box_b[2]) - max(box_a[0], box_b[0])
     dv = min(box_a[3], box_b[3]) - max(box_a[1], box_b[1])
@@ -104,34 +106,94 @@ def _overlap_share(box_a: FloatArray, box_b: FloatArray) -> float:
     return float(du * dv / max(area, 1e-12))
 
 
+# The normals' dot products of all pairs at once (one matrix product) may round a few ulp apart
+# from the row-by-row products the grouping is defined with; within this of the threshold the row
+# is computed again as defined, so that the labels are the same to the bit.
+_DOT_MARGIN = 1e-9
+
+
 def _coplanar_groups(normals: FloatArray, d_m: FloatArray, config: MatchingConfig) -> np.ndarray:
-    """Label planes so that patches of one physical plane share a label."""
-    labels = -np.ones(len(d_m), dtype=int)
+    """Label planes (unit normals (k, 3), offsets (k,)) so that patches of one physical plane share
+    a label: plane k, unless labelled already, labels every unlabelled plane within
+    ``coplanar_angle_deg`` and ``coplanar_offset_m`` of it (itself included) with ``k``."""
     cos_max = np.cos(np.radians(config.coplanar_angle_deg))
-    for k in range(len(d_m)):
-        if labels[k] >= 0:
-            continue
-        same = (normals @ normals[k] >= cos_max) & (np.abs(d_m - d_m[k]) <= config.coplanar_offset_m)
-        labels[same & (labels < 0)] = k
-    return labels
+    cos = normals @ normals.T
+    close = np.abs(d_m[None, :] - d_m[:, None]) <= config.coplanar_offset_m
+    same = (cos >= cos_max) & close
+    for row_k in np.flatnonzero((np.abs(cos - cos_max) <= _DOT_MARGIN).any(axis=1)):
+        same[row_k] = (normals @ normals[row_k] >= cos_max) & close[row_k]
+    labels = [-1] * len(d_m)
+    for k, row in enumerate(same.tolist()):
+        if labels[k] < 0:
+            for j in itertools.compress(range(len(row)), row):
+                if labels[j] < 0:
+                    labels[j] = k
+    return np.array(labels, dtype=int)
+
+
+class StationPlanes(Sequence[Plane]):
+    """One station's planes, with what :func:`match_planes` works on formed once for all the pairs
+    the station is in: normals (k, 3), offsets (k,), centroids (k, 3) and hulls; on first use each
+    plane's box (:meth:`box`) and the coplanar groups (:meth:`groups`). Indexed, iterated and
+    counted as the planes."""
+
+    def __init__(self, planes: tuple[Plane, ...]) -> None:
+        self.planes = planes
+        self.normals = np.array([p.normal for p in planes])
+        self.d_m = np.array([p.d_m for p in planes])
+        self.centroids_xyz = np.array([p.centroid_xyz for p in planes])
+        self.hulls_xyz = [np.asarray(p.hull_xyz, dtype=np.float64) for p in planes]
+        self._boxes: list[tuple[float, ...] | None] = [None] * len(planes)
+        self._groups: dict[tuple[float, float], np.ndarray] = {}
+
+    def box(self, k: int) -> tuple[float, ...]:
+        """Plane k's box (umin, vmin, umax, vmax) in its own tangent basis about its centroid."""
+        box = self._boxes[k]
+        if box is None:
+            plane = self.planes[k]
+            box = self._boxes[k] = _box_in_plane(plane.hull_xyz, self.centroids_xyz[k], *plane.basis_uv)
+        return box
+
+    def groups(self, config: MatchingConfig) -> np.ndarray:
+        """The planes' coplanar groups (:func:`_coplanar_groups`) under ``config``."""
+        key = (config.coplanar_angle_deg, config.coplanar_offset_m)
+        if key not in self._groups:
+            self._groups[key] = _coplanar_groups(self.normals, self.d_m, config)
+        return self._groups[key]
+
+    @overload
+    def __getitem__(self, index: int) -> Plane: ...
+    @overload
+    def __getitem__(self, index: slice) -> tuple[Plane, ...]: ...
+    def __getitem__(self, index: int | slice) -> Plane | tuple[Plane, ...]:
+        return self.planes[index]
+
+    def __len__(self) -> int:
+        return len(self.planes)
 
 
 def match_planes(
-    planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...], T_i_j: Pose, config: MatchingConfig
+    planes_i: tuple[Plane, ...] | StationPlanes, planes_j: tuple[Plane, ...] | StationPlanes, T_i_j: Pose,
+    config: MatchingConfig,
 ) -> tuple[PlaneMatch, ...]:
     """Plane correspondences between two scans, given the approximate transform ``T_i_j``.
 
     Normals must agree within ``max_angle_deg``, the planes lie within ``max_offset_m`` of each
     other (measured at the other patch's centroid, both ways), and their extents overlap by at
-    least ``min_overlap``. Returns the matches sorted by (plane_i, plane_j).
+    least ``min_overlap``. Returns the matches sorted by (plane_i, plane_j). A station matched in
+    many pairs may come as its :class:`StationPlanes`, formed once.
     """
-    if not planes_i or not planes_j:
+    si = planes_i if isinstance(planes_i, StationPlanes) else StationPlanes(planes_i)
+    sj = planes_j if isinstance(planes_j, StationPlanes) else StationPlanes(planes_j)
+    if not si.planes or not sj.planes:
         return ()
-    n_a = np.array([p.normal for p in planes_i])
-    d_a = np.array([p.d_m for p in planes_i])
-    c_a = np.array([p.centroid_xyz for p in planes_i])
-    n_b, d_b = transform_planes(np.array([p.normal for p in planes_j]), np.array([p.d_m for p in planes_j]), T_i_j)
-    c_b = T_i_j.apply(np.array([p.centroid_xyz for p in planes_j]))
+    n_a, d_a, c_a = si.normals, si.d_m, si.centroids_xyz
+    # T_i_j's rotation formed once (Pose.apply and transform_planes form it on every call), and
+    # applied as they apply it: the same products, the same floats.
+    R_i_j, t_i_j = T_i_j.rotation_matrix, T_i_j.t_xyz
+    n_b = sj.normals @ R_i_j.T
+    d_b = sj.d_m + n_b @ t_i_j
+    c_b = sj.centroids_xyz @ R_i_j.T + t_i_j
 
     cos = np.clip(n_a @ n_b.T, -1.0, 1.0)
     angle = np.degrees(np.arccos(cos))
@@ -141,58 +203,54 @@ def match_planes(
     offset = 0.5 * (off_ab + off_ba)
     gate = (angle <= config.max_angle_deg) & (offset <= config.max_offset_m)
 
-    group_b = _coplanar_groups(n_b, d_b, config)
-    group_a = _coplanar_groups(n_a, d_a, config)
-    candidates: dict[tuple[int, int], tuple[float, float, float]] = {}
-    boxes_a: dict[int, FloatArray] = {}  # each plane's own box and hull in frame i, once per call
-    hulls_b: dict[int, FloatArray] = {}
-    for a, b in zip(*np.nonzero(gate), strict=True):
-        u, v = _plane_frame(planes_i[a])
-        if a not in boxes_a:
-            boxes_a[a] = _box_in_plane(planes_i[a].hull_xyz, c_a[a], u, v)
+    candidates: list[_Candidate] = []
+    hulls_b: dict[int, FloatArray] = {}  # each plane's hull in frame i, once per call
+    gated_a, gated_b = np.nonzero(gate)
+    for a, b, angle_ab, offset_ab in zip(gated_a.tolist(), gated_b.tolist(), angle[gated_a, gated_b].tolist(),
+                                         offset[gated_a, gated_b].tolist(), strict=True):
         if b not in hulls_b:
-            hulls_b[b] = T_i_j.apply(planes_j[b].hull_xyz)
-        box_a = boxes_a[a]
-        box_b = _box_in_plane(hulls_b[b], c_a[a], u, v)
-        share = _overlap_share(box_a, box_b)
+            hulls_b[b] = sj.hulls_xyz[b] @ R_i_j.T + t_i_j  # T_i_j.apply
+        u, v = si.planes[a].basis_uv
+        share = _overlap_share(si.box(a), _box_in_plane(hulls_b[b], c_a[a], u, v))
         if share >= config.min_overlap:
-            candidates[(int(a), int(b))] = (float(angle[a, b]), float(offset[a, b]), share)
+            candidates.append(((a, b), angle_ab, offset_ab, share))
 
-    def unambiguous(groups_of_other: np.ndarray, pairs: list[tuple[int, int]], other_index: int) -> bool:
-        best: dict[int, float] = {}
-        for pair in pairs:
-            g = int(groups_of_other[pair[other_index]])
-            best[g] = min(best.get(g, np.inf), candidates[pair][1])
-        if len(best) < 2:
-            return True
-        first, second = sorted(best.values())[:2]
-        return second > _AMBIGUITY_RATIO * first + config.coplanar_offset_m
+    # Each plane of i keeps only its candidates on one physical plane of j, then each plane of j
+    # its candidates on one physical plane of i.
+    kept = _one_plane_each(candidates, lambda: _coplanar_groups(n_b, d_b, config).tolist(), 0, config)
+    kept = _one_plane_each(kept, lambda: si.groups(config).tolist(), 1, config)
+    return tuple(PlaneMatch(si.planes[a].plane_id, sj.planes[b].plane_id, angle_deg, offset_m, share)
+                 for (a, b), angle_deg, offset_m, share in sorted(kept))
 
-    def best_group(groups_of_other: np.ndarray, pairs: list[tuple[int, int]], other_index: int) -> int:
-        return int(groups_of_other[min(pairs, key=lambda p: candidates[p][1])[other_index]])
 
-    keep = set(candidates)
-    for a in range(len(planes_i)):
-        pairs = [p for p in candidates if p[0] == a]
-        if not pairs:
-            continue
-        if not unambiguous(group_b, pairs, 1):
-            keep -= set(pairs)
-            continue
-        g = best_group(group_b, pairs, 1)
-        keep -= {p for p in pairs if group_b[p[1]] != g}
-    for b in range(len(planes_j)):
-        pairs = [p for p in keep if p[1] == b]
-        if not pairs:
-            continue
-        if not unambiguous(group_a, pairs, 0):
-            keep -= set(pairs)
-            continue
-        g = best_group(group_a, pairs, 0)
-        keep -= {p for p in pairs if group_a[p[0]] != g}
-    return tuple(
-        PlaneMatch(planes_i[a].plane_id, planes_j[b].plane_id, *candidates[(a, b)]) for a, b in sorted(keep)
-    )
+def _one_plane_each(candidates: list[_Candidate], other_groups: Callable[[], list[int]], own: int,
+                    config: MatchingConfig) -> list[_Candidate]:
+    """The candidates ((a, b), angle, offset, share) left when every plane on side ``own`` (0: a,
+    1: b) keeps those on the physical plane (coplanar group, from ``other_groups()``, of the other
+    side's plane) of its best (smallest offset) candidate, and only where no candidate on another
+    physical plane comes close to it (then it keeps none). In the order given. ``other_groups`` is
+    called only where a plane has more than one candidate."""
+    other = 1 - own
+    mine: dict[int, list[_Candidate]] = {}
+    for c in candidates:
+        mine.setdefault(c[0][own], []).append(c)
+    if len(mine) == len(candidates):  # one candidate each: nothing to choose between
+        return candidates
+    groups_of_other = other_groups()
+    chosen: dict[int, int] = {}  # plane -> the group it keeps
+    for k, cands in mine.items():
+        best: dict[int, float] = {}  # the best offset on each physical plane
+        for c in cands:
+            g = groups_of_other[c[0][other]]
+            best[g] = min(best.get(g, np.inf), c[2])
+        if len(best) > 1:
+            first, second = sorted(best.values())[:2]
+            if not second > _AMBIGUITY_RATIO * first + config.coplanar_offset_m:
+                continue
+        # Two physical planes tied for the best never get here (ambiguous), so the order of
+        # the candidates does not choose between them.
+        chosen[k] = groups_of_other[min(cands, key=lambda c: c[2])[0][other]]
+    return [c for c in candidates if chosen.get(c[0][own]) == groups_of_other[c[0][other]]]
 
 
 def count_directions(normals: FloatArray, min_angle_deg: float = 20.0) -> int:

@@ -20,7 +20,13 @@ from scipy.spatial import cKDTree
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
-from kinreg.estimate.matching import candidate_pairs, coarse_translation, count_directions, match_planes
+from kinreg.estimate.matching import (
+    StationPlanes,
+    candidate_pairs,
+    coarse_translation,
+    count_directions,
+    match_planes,
+)
 from kinreg.estimate.pairwise import PairInput, adjust_pairs
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
@@ -78,13 +84,17 @@ def link_pairs(
     sigmas: Mapping[int, np.ndarray] | None = None,
 ) -> list[Link | None]:
     """Match and adjust candidate pairs ``(i, j)`` of ``stations``; per pair its link, ``None``
-    where too few planes match. The pairs are adjusted together (:func:`adjust_pairs`: numpy's
-    cost per call, not the arithmetic, sets the pace of a pair's solve). The planes' covariances
-    are expected to carry the drift inside their windows already (:func:`with_window_deformation`,
-    as :func:`link_stations` passes them). A pair's prior is the stations' relative pose with
-    ``hypot(sigmas[i], sigmas[j])`` (6,), by default the drift's over their time difference."""
+    where too few planes match. Each station's planes are formed for matching once
+    (:class:`StationPlanes`), not once per pair, and the pairs are adjusted together
+    (:func:`adjust_pairs`: numpy's cost per call, not the arithmetic, sets the pace of a pair's
+    solve). The planes' covariances are expected to carry the drift inside their windows already
+    (:func:`with_window_deformation`, as :func:`link_stations` passes them). A pair's prior is
+    the stations' relative pose with ``hypot(sigmas[i], sigmas[j])`` (6,), by default the drift's
+    over their time difference."""
+    matchable = {k: StationPlanes(p) for k, p in planes.items()}
     inputs = [_pair_input(i, j, stations[i], stations[j], planes[i], planes[j], matching, pairwise, static,
-                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
+                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j]), (matchable[i], matchable[j]))
+              for i, j in pairs]
     links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise))
     return [None if p is None else next(links) for p in inputs]
 
@@ -92,11 +102,12 @@ def link_pairs(
 def _pair_input(
     i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
     matching: MatchingConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    sigma_prior: np.ndarray | None,
+    sigma_prior: np.ndarray | None, matchable: tuple[StationPlanes, StationPlanes],
 ) -> PairInput | None:
     """One pair's matches and prior, ready to adjust; ``None`` where too few planes match."""
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
-    matches = match_planes(planes_i, planes_j, T_prior, matching)
+    match_i, match_j = matchable
+    matches = match_planes(match_i, match_j, T_prior, matching)
     sigma = sigma_prior
     if matching.max_jump_m > 0 and _directions(matches, planes_i) < 3:
         # Robust step: the trajectory may have jumped between the two scans, so that the planes
@@ -104,7 +115,7 @@ def _pair_input(
         tau = coarse_translation(planes_i, planes_j, T_prior, matching)
         if tau is not None and np.linalg.norm(tau) > matching.max_offset_m:
             shifted = Pose(np.array([1.0, 0, 0, 0]), tau).compose(T_prior)
-            realigned = match_planes(planes_i, planes_j, shifted, matching)
+            realigned = match_planes(match_i, match_j, shifted, matching)
             if (len(realigned) >= matching.min_matches
                     and _directions(realigned, planes_i) > _directions(matches, planes_i)):
                 log.info("pair %s-%s: trajectory off by %.3f m; linked after a translation search",
