@@ -233,7 +233,8 @@ def test_coplanar_groups_are_the_former_with_and_without_the_rows_done_again(mon
         normals = base[rng.integers(0, len(base), k)] + rng.normal(0, np.radians(1.5), (k, 3))
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         d_m = rng.choice([-3.0, -1.0, 0.5], k) + rng.normal(0, 0.04, k)
-        assert matching._coplanar_groups(normals, d_m, config).tolist() == _reference_groups(normals, d_m, config).tolist()
+        expected = _reference_groups(normals, d_m, config).tolist()
+        assert matching._coplanar_groups(normals, d_m, config).tolist() == expected
 
 
 def test_station_planes_read_as_the_planes():
