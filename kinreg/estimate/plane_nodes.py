@@ -11,7 +11,10 @@ links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` w
 plane's normal and whose origin lies on it. Each scan plane in it observes ``T_k^-1 F_g`` twice,
 from the plane's own covariance: its two tilts (``PLANE``, rank 2) and its offset given the tilts
 (``PLANE_OFFSET``, rank 1), each kind with a variance component of its own, which may also fall
-below 1 (their residuals show their whole error: :mod:`kinreg.estimate.snooping`). The three
+below 1 (their residuals show their whole error: :mod:`kinreg.estimate.snooping`). A scan plane
+whose model is mostly the floors (a large plane: its least-squares sigmas far below them) observes
+as ``PLANE_FLOOR`` and ``PLANE_OFFSET_FLOOR`` instead, with components of their own
+(:func:`floor_bound`). The three
 directions a plane leaves free (the shift in it, the turn about its normal) are held by a
 ``STATION`` observation of the node itself with only those directions (one metre, one radian): no
 other observation sees them, so it changes nothing else, has no redundancy and is never tested.
