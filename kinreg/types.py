@@ -266,6 +266,8 @@ class ObservationKind(enum.Enum):
     FRAME = "frame"  # a quasi-static scan's frame against its sensor pose (the window bias, kinreg.estimate.frames)
     PLANE = "plane"  # one scan plane's tilts against the physical plane it belongs to (kinreg.estimate.plane_nodes)
     PLANE_OFFSET = "plane offset"  # ... and its offset, given its tilts
+    PLANE_FLOOR = "plane (floor)"  # a scan plane's tilts whose model is mostly the floor (a large plane)
+    PLANE_OFFSET_FLOOR = "plane offset (floor)"  # ... its offset, likewise
 
 
 @dataclass(frozen=True, eq=False)

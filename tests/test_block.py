@@ -168,11 +168,18 @@ def test_variance_components_lower_only_the_kinds_whose_whole_error_shows():
     new = variance_components(tests, weights, 0.001, frozenset({"plane"}))
     assert new["plane"] == pytest.approx(2.0)  # half the expected squares: the weight doubled
     assert new["planes"] == 1.0  # the links' errors are shared: never below the a-priori model
-    # at a hundredth of the expected squares the weight stops at MAX_WEIGHT_GAIN; near 1 it stays
+    # at a hundredth of the expected squares the weight stops at MAX_WEIGHT_GAIN; a scan plane
+    # group takes its estimate also where a test could not tell it from 1 (0.95 at r = 300), and
+    # below 1 where its residuals are larger than its model
     assert variance_components(group(ObservationKind.PLANE, 300, 0.01), weights, 0.001,
                                frozenset({"plane"}))["plane"] == MAX_WEIGHT_GAIN
     assert variance_components(group(ObservationKind.PLANE, 300, 0.95), weights, 0.001,
-                               frozenset({"plane"}))["plane"] == 1.0
+                               frozenset({"plane"}))["plane"] == pytest.approx(1.0 / 0.95)
+    assert variance_components(group(ObservationKind.PLANE, 300, 1.1), weights, 0.001,
+                               frozenset({"plane"}))["plane"] == pytest.approx(1.0 / 1.1)
+    # a link group inside the test's band keeps its weight
+    assert variance_components(group(ObservationKind.PLANES, 300, 1.1), weights, 0.001,
+                               frozenset({"plane"}))["planes"] == 1.0
 
 
 def test_gross_error_is_found_by_data_snooping():

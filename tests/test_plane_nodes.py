@@ -85,3 +85,23 @@ def test_the_report_draws_a_scan_plane_s_residuals_with_its_own_degrees_of_freed
     assert _residual_dofs({}, "plane") == {2: 1.0}
     assert _residual_dofs({}, "plane offset") == {1: 1.0}
     assert _residual_dofs({}, "trajectory") == {6: 1.0}
+
+
+def test_scan_planes_whose_model_is_mostly_the_floor_form_kinds_of_their_own():
+    """A scan plane's tilts (or offset) whose covariance is more than half the floor go to the
+    ``(floor)`` kinds, each with its own variance component: large planes and planes set by their
+    points' noise are not off from their models by the same factor."""
+    poses = Pose.stack([Pose.identity(), pose([0.01, 0.02, 0.0], [0.3, -0.2, 0.0])])
+    planes = [scan_planes(poses[k].inverse(), k, None, sigma_tilt=2e-4, sigma_d=5e-4) for k in range(2)]
+    nodes = _room_nodes(2)
+
+    def kinds(floors):
+        _, observations = plane_node_observations(poses, planes, PlaneNodes(nodes.clusters, floors), 2)
+        return [o.kind for o in observations if o.kind is not ObservationKind.STATION]
+
+    n = 2 * len(ROOM)
+    assert kinds((0.0, 0.0)) == [ObservationKind.PLANE, ObservationKind.PLANE_OFFSET] * n
+    # floors of the planes' own size: more than half of each variance
+    assert kinds((2e-4, 5e-4)) == [ObservationKind.PLANE_FLOOR, ObservationKind.PLANE_OFFSET_FLOOR] * n
+    # a tenth of it in the tilts only
+    assert kinds((2e-5, 5e-4)) == [ObservationKind.PLANE, ObservationKind.PLANE_OFFSET_FLOOR] * n

@@ -52,10 +52,12 @@ log = logging.getLogger(__name__)
 
 # Kinds whose variance component may also fall below 1 (kinreg.estimate.snooping.variance_components):
 # a scan plane against its physical plane shows its whole error in its residuals.
-_LOWERABLE = frozenset({ObservationKind.PLANE.value, ObservationKind.PLANE_OFFSET.value})
+_SCAN_PLANES = (ObservationKind.PLANE.value, ObservationKind.PLANE_OFFSET.value, ObservationKind.PLANE_FLOOR.value,
+                ObservationKind.PLANE_OFFSET_FLOOR.value)
+_LOWERABLE = frozenset(_SCAN_PLANES)
 # Kinds never snooped (see _adjust_block)
 _NOT_SNOOPED = [ObservationKind.TRAJECTORY.value, ObservationKind.DRIFT.value, ObservationKind.FRAME.value,
-                ObservationKind.PLANE.value, ObservationKind.PLANE_OFFSET.value]
+                *_SCAN_PLANES]
 
 
 def adjoint(T: Pose) -> FloatArray:

@@ -11,7 +11,10 @@ links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` w
 plane's normal and whose origin lies on it. Each scan plane in it observes ``T_k^-1 F_g`` twice,
 from the plane's own covariance: its two tilts (``PLANE``, rank 2) and its offset given the tilts
 (``PLANE_OFFSET``, rank 1), each kind with a variance component of its own, which may also fall
-below 1 (their residuals show their whole error: :mod:`kinreg.estimate.snooping`). The three
+below 1 (their residuals show their whole error: :mod:`kinreg.estimate.snooping`). A scan plane
+whose model is mostly the floors (a large plane: its least-squares sigmas far below them) observes
+as ``PLANE_FLOOR`` and ``PLANE_OFFSET_FLOOR`` instead, with components of their own
+(:func:`floor_bound`). The three
 directions a plane leaves free (the shift in it, the turn about its normal) are held by a
 ``STATION`` observation of the node itself with only those directions (one metre, one radian): no
 other observation sees them, so it changes nothing else, has no redundancy and is never tested.
@@ -39,17 +42,22 @@ _GAUGE_SIGMA = 1.0  # [m], [rad]: the hold on a plane node's free directions
 
 @dataclass(frozen=True, eq=False)
 class PlaneNodes:
-    """The physical planes of a network: per cluster its members ``(station, plane_id)``."""
+    """The physical planes of a network: per cluster its members ``(station, plane_id)``; and the
+    floors the scan planes' covariances carry (tilt [rad], offset [m]:
+    ``PlanesConfig.min_sigma_angle_rad``, ``min_sigma_d_m``), to tell the planes whose model is
+    mostly floor from those whose model is mostly their points' noise."""
 
     clusters: tuple[tuple[tuple[int, int], ...], ...]
+    floors: tuple[float, float] = (0.0, 0.0)
 
     def __len__(self) -> int:
         return len(self.clusters)
 
 
-def plane_clusters(links: Sequence[Link]) -> PlaneNodes:
+def plane_clusters(links: Sequence[Link], floors: tuple[float, float] = (0.0, 0.0)) -> PlaneNodes:
     """The scan planes joined into physical planes by the matches of the usable links (union-find
-    over ``(station, plane_id)``); only planes seen by two stations or more."""
+    over ``(station, plane_id)``); only planes seen by two stations or more. ``floors``: see
+    :class:`PlaneNodes`."""
     parent: dict[tuple[int, int], tuple[int, int]] = {}
 
     def root(key: tuple[int, int]) -> tuple[int, int]:
@@ -70,7 +78,7 @@ def plane_clusters(links: Sequence[Link]) -> PlaneNodes:
     for key in parent:
         groups.setdefault(root(key), []).append(key)
     clusters = tuple(tuple(sorted(g)) for g in groups.values() if len({k for k, _ in g}) >= 2)
-    return PlaneNodes(tuple(sorted(clusters)))
+    return PlaneNodes(tuple(sorted(clusters)), floors)
 
 
 def _frame(normal: FloatArray, x_hint: FloatArray) -> FloatArray:
@@ -91,6 +99,19 @@ def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> tuple[
     each gets a variance component of its own: a plane fit's offset and tilts are not off from
     their floors by the same factor (in the simulated medium class, the offsets' residuals are a
     tenth of their model's, the tilts' a third)."""
+    cov = _frame_covariance(plane, R, origin)
+    C_tt, C_ot = cov[:2, :2], cov[2, :2]
+    K = np.linalg.solve(C_tt, C_ot)  # the offset's regression on the tilts
+    w = np.array([-K[0], -K[1], 1.0])
+    tilts, offset = np.zeros((6, 6)), np.zeros((6, 6))
+    tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])] = np.linalg.inv(C_tt)
+    offset[np.ix_(_DETERMINED, _DETERMINED)] = np.outer(w, w) / (cov[2, 2] - C_ot @ K)
+    return 0.5 * (tilts + tilts.T), offset
+
+
+def _frame_covariance(plane: Plane, R: FloatArray, origin: FloatArray) -> FloatArray:
+    """The covariance of a plane's (tilt about the frame's x, tilt about its y, offset at
+    ``origin``) (frame rotation ``R``, scan axes), from ``cov_uvd``."""
     x, y = R[:, 0], R[:, 1]
     u, v = plane.basis_uv[0], plane.basis_uv[1]
     M = np.array([[x @ u, x @ v], [y @ u, y @ v]])  # (a, b) along (u, v) -> along (x, y)
@@ -100,14 +121,21 @@ def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> tuple[
     # the offset at the origin then moves by e - a x.o - b y.o.
     J = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [-(x @ origin), -(y @ origin), 1.0]]) @ to_xy
     cov = J @ plane.cov_uvd @ J.T
-    cov = 0.5 * (cov + cov.T)
+    return 0.5 * (cov + cov.T)
+
+
+def floor_bound(plane: Plane, R: FloatArray, origin: FloatArray, floors: tuple[float, float]) -> tuple[bool, bool]:
+    """Whether the plane's tilts, and its offset given the tilts, have a model that is mostly the
+    floors (more than half the variance): a large plane of many points, whose least-squares
+    sigmas are far below them. Those and the planes set by their points' noise are not off from
+    their models by the same factor, so each gets a variance component of its own (in the
+    simulated small and medium classes, one component for both left the large planes, which fix
+    the network's tilt, at 1.2-1.4 times their errors)."""
+    cov = _frame_covariance(plane, R, origin)
     C_tt, C_ot = cov[:2, :2], cov[2, :2]
-    K = np.linalg.solve(C_tt, C_ot)  # the offset's regression on the tilts
-    w = np.array([-K[0], -K[1], 1.0])
-    tilts, offset = np.zeros((6, 6)), np.zeros((6, 6))
-    tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])] = np.linalg.inv(C_tt)
-    offset[np.ix_(_DETERMINED, _DETERMINED)] = np.outer(w, w) / (cov[2, 2] - C_ot @ K)
-    return 0.5 * (tilts + tilts.T), offset
+    tilt_var = 0.5 * float(np.trace(C_tt))
+    offset_var = float(cov[2, 2] - C_ot @ np.linalg.solve(C_tt, C_ot))
+    return floors[0] ** 2 > 0.5 * tilt_var, floors[1] ** 2 > 0.5 * offset_var
 
 
 def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], nodes: PlaneNodes,
@@ -142,8 +170,12 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
             R, o = _frame(normal, D.rotation_matrix[:, 0]), t - (normal @ t - d) * normal
             Z = Pose(matrix_to_quat(R), o)
             tilts, offset = plane_information(plane, R, o)
-            observations.append(RelativeObservation(ObservationKind.PLANE, k, node, Z, tilts, 2))
-            observations.append(RelativeObservation(ObservationKind.PLANE_OFFSET, k, node, Z, offset, 1))
+            tilts_floor, offset_floor = floor_bound(plane, R, o, nodes.floors)
+            observations.append(RelativeObservation(
+                ObservationKind.PLANE_FLOOR if tilts_floor else ObservationKind.PLANE, k, node, Z, tilts, 2))
+            observations.append(RelativeObservation(
+                ObservationKind.PLANE_OFFSET_FLOOR if offset_floor else ObservationKind.PLANE_OFFSET, k, node, Z,
+                offset, 1))
         observations.append(RelativeObservation(ObservationKind.STATION, node, -1, F, gauge.copy(), 3))
     if not quats:
         return Pose(np.zeros((0, 4)), np.zeros((0, 3))), observations

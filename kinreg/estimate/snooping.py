@@ -236,9 +236,8 @@ def variance_components(tests: ObservationTests | Sequence[ObservationTest], wei
     weights; a group's weight is divided by sigma_g^2, never above the a-priori weight, and
     lowered only where its own chi-square test rejects the current model
     (``(e^T P e)_g > chi2(1 - alpha, r_g)``). The kinds in ``may_lower`` (whose errors all show in
-    their residuals: the scan planes against the physical planes) are also raised where their
-    residuals are significantly smaller than the model (``< chi2(alpha, r_g)``), to at most
-    :data:`MAX_WEIGHT_GAIN` times the a-priori weight.
+    their residuals: the scan planes against the physical planes) take the estimate itself, up or
+    down, to at most :data:`MAX_WEIGHT_GAIN` times the a-priori weight.
     Kinds with too little redundancy (< 5) keep their weight: their component cannot be estimated.
     """
     if not isinstance(tests, ObservationTests):
@@ -257,7 +256,10 @@ def variance_components(tests: ObservationTests | Sequence[ObservationTest], wei
         # widely (r = 6, four control points: chi-square/6 exceeds 1 in 42% of draws of a right
         # model), so inflating on every estimate above 1 inflates on average. A group inflated too
         # far in an earlier round (by another group's misfit) goes back towards its a-priori weight.
-        if kind in may_lower and omega < chi2_quantile(alpha, r):
+        if kind in may_lower:
+            # Their residuals show their whole error, so their component is the estimate itself,
+            # not 1 until a test rejects: a group 0.7 of its model, with its r too small for the
+            # test to tell, kept sigmas 1.2 times its errors.
             new[kind] = min(MAX_WEIGHT_GAIN, weights[kind] / max(omega / r, 1e-6))
             continue
         if omega > r and omega <= chi2_quantile(1.0 - alpha, r):

@@ -472,7 +472,7 @@ def _normal_density(y: float) -> float:
     return math.exp(-y * y / 2) / math.sqrt(2 * math.pi)
 
 
-_SCAN_PLANE_DOF = {"plane": 2, "plane offset": 1}
+_SCAN_PLANE_DOF = {"plane": 2, "plane offset": 1, "plane (floor)": 2, "plane offset (floor)": 1}
 
 
 def _residual_dofs(report: dict[str, Any], kind: str) -> dict[int, float]:

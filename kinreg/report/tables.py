@@ -120,7 +120,8 @@ def _plane_tests(result: BlockResult, nodes: PlaneNodes) -> dict[tuple[int, int]
     out = {}
     taken = [0] * len(nodes)  # the observations of a physical plane come in its members' order
     for t in result.tests:
-        if t.kind is ObservationKind.PLANE and 0 <= t.j < len(nodes) and taken[t.j] < len(nodes.clusters[t.j]):
+        tilts = t.kind in (ObservationKind.PLANE, ObservationKind.PLANE_FLOOR)
+        if tilts and 0 <= t.j < len(nodes) and taken[t.j] < len(nodes.clusters[t.j]):
             k, pid = nodes.clusters[t.j][taken[t.j]]
             taken[t.j] += 1
             if k == t.i:

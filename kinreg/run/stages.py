@@ -285,7 +285,8 @@ def adjust_with_measured_drift(
         # The links' matches say which planes are one; a link the block rejected says nothing.
         rejected = {(t.i, t.j) for t in result.tests if t.kind is ObservationKind.PLANES and t.rejected}
         usable = [link for link in network.links if (link.scan_i, link.scan_j) not in rejected]
-        network = replace(network, planes=tuple(used_planes), plane_nodes=plane_clusters(usable))
+        network = replace(network, planes=tuple(used_planes), plane_nodes=plane_clusters(
+            usable, (config.planes.min_sigma_angle_rad, config.planes.min_sigma_d_m)))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     _warn_trajectory_misfits(result, config.block.alpha)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
