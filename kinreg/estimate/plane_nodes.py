@@ -128,9 +128,10 @@ def floor_bound(plane: Plane, R: FloatArray, origin: FloatArray, floors: tuple[f
     """Whether the plane's tilts, and its offset given the tilts, have a model that is mostly the
     floors (more than half the variance): a large plane of many points, whose least-squares
     sigmas are far below them. Those and the planes set by their points' noise are not off from
-    their models by the same factor, so each gets a variance component of its own (in the
-    simulated small and medium classes, one component for both left the large planes, which fix
-    the network's tilt, at 1.2-1.4 times their errors)."""
+    their models by the same factor (medium class, world seed 2: 0.25 and 1.0 where one component
+    for both was 0.36), so each gets a variance component of its own. With the components
+    estimated up or down, the simulated medium class's pooled z went from 0.74-0.82 to 0.85-0.88
+    (benchmarks/RESULTS.md)."""
     cov = _frame_covariance(plane, R, origin)
     C_tt, C_ot = cov[:2, :2], cov[2, :2]
     tilt_var = 0.5 * float(np.trace(C_tt))
