@@ -270,6 +270,12 @@ class ObservationKind(enum.Enum):
     PLANE_OFFSET_FLOOR = "plane offset (floor)"  # ... its offset, likewise
 
 
+# The kinds a scan plane observes its physical plane with (kinreg.estimate.plane_nodes), and their
+# ranks: its tilts 2, its offset given the tilts 1.
+SCAN_PLANE_RANK = {ObservationKind.PLANE: 2, ObservationKind.PLANE_OFFSET: 1, ObservationKind.PLANE_FLOOR: 2,
+                   ObservationKind.PLANE_OFFSET_FLOOR: 1}
+
+
 @dataclass(frozen=True, eq=False)
 class RelativeObservation:
     """One observation of the block adjustment: the relative pose ``T_i_j`` of stations i and j

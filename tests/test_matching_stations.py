@@ -23,15 +23,6 @@ def _reference_box(points, origin, u, v):
     return np.array([along_u.min(), along_v.min(), along_u.max(), along_v.max()])
 
 
-def _reference_overlap(box_a, box_b):
-    du = min(box_a[2], box_b[2]) - max(box_a[0], box_b[0])
-    dv = min(box_a[3], box_b[3]) - max(box_a[1], box_b[1])
-    if du <= 0 or dv <= 0:
-        return 0.0
-    area = min((box_a[2] - box_a[0]) * (box_a[3] - box_a[1]), (box_b[2] - box_b[0]) * (box_b[3] - box_b[1]))
-    return float(du * dv / max(area, 1e-12))
-
-
 def _reference_groups(normals, d_m, config):
     labels = -np.ones(len(d_m), dtype=int)
     cos_max = np.cos(np.radians(config.coplanar_angle_deg))
@@ -69,7 +60,7 @@ def _reference_match(planes_i, planes_j, T_i_j, config) -> tuple[tuple[PlaneMatc
             boxes_a[a] = _reference_box(planes_i[a].hull_xyz, c_a[a], u, v)
         if b not in hulls_b:
             hulls_b[b] = T_i_j.apply(planes_j[b].hull_xyz)
-        share = _reference_overlap(boxes_a[a], _reference_box(hulls_b[b], c_a[a], u, v))
+        share = matching._overlap_share(boxes_a[a], _reference_box(hulls_b[b], c_a[a], u, v))
         if share >= config.min_overlap:
             candidates[(int(a), int(b))] = (float(angle[a, b]), float(offset[a, b]), share)
 

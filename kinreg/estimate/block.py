@@ -46,14 +46,13 @@ from kinreg.estimate.snooping import (
 from kinreg.estimate.sparse import in_threads, kept_heap, one_blas_thread
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_to_matrix, quat_to_rotvec, relative_poses, skew
 from kinreg.progress import NullProgress, Progress
-from kinreg.types import BlockResult, ObservationKind, RelativeObservation
+from kinreg.types import SCAN_PLANE_RANK, BlockResult, ObservationKind, RelativeObservation
 
 log = logging.getLogger(__name__)
 
 # Kinds whose variance component may also fall below 1 (kinreg.estimate.snooping.variance_components):
 # a scan plane against its physical plane shows its whole error in its residuals.
-_SCAN_PLANES = (ObservationKind.PLANE.value, ObservationKind.PLANE_OFFSET.value, ObservationKind.PLANE_FLOOR.value,
-                ObservationKind.PLANE_OFFSET_FLOOR.value)
+_SCAN_PLANES = tuple(kind.value for kind in SCAN_PLANE_RANK)
 _LOWERABLE = frozenset(_SCAN_PLANES)
 # Kinds never snooped (see _adjust_block)
 _NOT_SNOOPED = [ObservationKind.TRAJECTORY.value, ObservationKind.DRIFT.value, ObservationKind.FRAME.value,

@@ -92,21 +92,19 @@ def link_pairs(
     the stations' relative pose with ``hypot(sigmas[i], sigmas[j])`` (6,), by default the drift's
     over their time difference."""
     matchable = {k: StationPlanes(p) for k, p in planes.items()}
-    inputs = [_pair_input(i, j, stations[i], stations[j], planes[i], planes[j], matching, pairwise, static,
-                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j]), (matchable[i], matchable[j]))
-              for i, j in pairs]
+    inputs = [_pair_input(i, j, stations[i], stations[j], matchable[i], matchable[j], matching, pairwise, static,
+                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
     links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise))
     return [None if p is None else next(links) for p in inputs]
 
 
 def _pair_input(
-    i: int, j: int, si: Station, sj: Station, planes_i: tuple[Plane, ...], planes_j: tuple[Plane, ...],
-    matching: MatchingConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    sigma_prior: np.ndarray | None, matchable: tuple[StationPlanes, StationPlanes],
+    i: int, j: int, si: Station, sj: Station, match_i: StationPlanes, match_j: StationPlanes,
+    matching: MatchingConfig, pairwise: PairwiseConfig, static: StaticConfig | None, sigma_prior: np.ndarray | None,
 ) -> PairInput | None:
     """One pair's matches and prior, ready to adjust; ``None`` where too few planes match."""
+    planes_i, planes_j = match_i.planes, match_j.planes
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
-    match_i, match_j = matchable
     matches = match_planes(match_i, match_j, T_prior, matching)
     sigma = sigma_prior
     if matching.max_jump_m > 0 and _directions(matches, planes_i) < 3:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat
-from kinreg.types import Link, LinkStatus, ObservationKind, Plane, RelativeObservation
+from kinreg.types import SCAN_PLANE_RANK, Link, LinkStatus, ObservationKind, Plane, RelativeObservation
 
 # The residual's order (rho, phi): where a plane's offset and tilts sit (phi_x, phi_y, rho_z).
 _DETERMINED = np.array([3, 4, 2])
@@ -99,19 +99,6 @@ def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> tuple[
     each gets a variance component of its own: a plane fit's offset and tilts are not off from
     their floors by the same factor (in the simulated medium class, the offsets' residuals are a
     tenth of their model's, the tilts' a third)."""
-    cov = _frame_covariance(plane, R, origin)
-    C_tt, C_ot = cov[:2, :2], cov[2, :2]
-    K = np.linalg.solve(C_tt, C_ot)  # the offset's regression on the tilts
-    w = np.array([-K[0], -K[1], 1.0])
-    tilts, offset = np.zeros((6, 6)), np.zeros((6, 6))
-    tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])] = np.linalg.inv(C_tt)
-    offset[np.ix_(_DETERMINED, _DETERMINED)] = np.outer(w, w) / (cov[2, 2] - C_ot @ K)
-    return 0.5 * (tilts + tilts.T), offset
-
-
-def _frame_covariance(plane: Plane, R: FloatArray, origin: FloatArray) -> FloatArray:
-    """The covariance of a plane's (tilt about the frame's x, tilt about its y, offset at
-    ``origin``) (frame rotation ``R``, scan axes), from ``cov_uvd``."""
     x, y = R[:, 0], R[:, 1]
     u, v = plane.basis_uv[0], plane.basis_uv[1]
     M = np.array([[x @ u, x @ v], [y @ u, y @ v]])  # (a, b) along (u, v) -> along (x, y)
@@ -121,21 +108,26 @@ def _frame_covariance(plane: Plane, R: FloatArray, origin: FloatArray) -> FloatA
     # the offset at the origin then moves by e - a x.o - b y.o.
     J = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [-(x @ origin), -(y @ origin), 1.0]]) @ to_xy
     cov = J @ plane.cov_uvd @ J.T
-    return 0.5 * (cov + cov.T)
-
-
-def floor_bound(plane: Plane, R: FloatArray, origin: FloatArray, floors: tuple[float, float]) -> tuple[bool, bool]:
-    """Whether the plane's tilts, and its offset given the tilts, have a model that is mostly the
-    floors (more than half the variance): a large plane of many points, whose least-squares
-    sigmas are far below them. Those and the planes set by their points' noise are not off from
-    their models by the same factor (medium class, world seed 2: 0.25 and 1.0 where one component
-    for both was 0.36), so each gets a variance component of its own. With the components
-    estimated up or down, the simulated medium class's pooled z went from 0.74-0.82 to 0.85-0.88
-    (benchmarks/RESULTS.md)."""
-    cov = _frame_covariance(plane, R, origin)
+    cov = 0.5 * (cov + cov.T)
     C_tt, C_ot = cov[:2, :2], cov[2, :2]
-    tilt_var = 0.5 * float(np.trace(C_tt))
-    offset_var = float(cov[2, 2] - C_ot @ np.linalg.solve(C_tt, C_ot))
+    K = np.linalg.solve(C_tt, C_ot)  # the offset's regression on the tilts
+    w = np.array([-K[0], -K[1], 1.0])
+    tilts, offset = np.zeros((6, 6)), np.zeros((6, 6))
+    tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])] = np.linalg.inv(C_tt)
+    offset[np.ix_(_DETERMINED, _DETERMINED)] = np.outer(w, w) / (cov[2, 2] - C_ot @ K)
+    return 0.5 * (tilts + tilts.T), offset
+
+
+def floor_bound(tilts: FloatArray, offset: FloatArray, floors: tuple[float, float]) -> tuple[bool, bool]:
+    """Whether a scan plane's tilts, and its offset given the tilts (their information,
+    :func:`plane_information`), have a model that is mostly the floors (more than half the
+    variance): a large plane of many points, whose least-squares sigmas are far below them. Those
+    and the planes set by their points' noise are not off from their models by the same factor
+    (medium class, world seed 2: 0.25 and 1.0 where one component for both was 0.36), so each gets
+    a variance component of its own. With the components estimated up or down, the simulated
+    medium class's pooled z went from 0.74-0.82 to 0.85-0.88 (benchmarks/RESULTS.md)."""
+    tilt_var = 0.5 * float(np.trace(np.linalg.inv(tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])])))
+    offset_var = 1.0 / float(offset[_DETERMINED[2], _DETERMINED[2]])  # its weight vector ends in 1
     return floors[0] ** 2 > 0.5 * tilt_var, floors[1] ** 2 > 0.5 * offset_var
 
 
@@ -171,12 +163,11 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
             R, o = _frame(normal, D.rotation_matrix[:, 0]), t - (normal @ t - d) * normal
             Z = Pose(matrix_to_quat(R), o)
             tilts, offset = plane_information(plane, R, o)
-            tilts_floor, offset_floor = floor_bound(plane, R, o, nodes.floors)
-            observations.append(RelativeObservation(
-                ObservationKind.PLANE_FLOOR if tilts_floor else ObservationKind.PLANE, k, node, Z, tilts, 2))
-            observations.append(RelativeObservation(
-                ObservationKind.PLANE_OFFSET_FLOOR if offset_floor else ObservationKind.PLANE_OFFSET, k, node, Z,
-                offset, 1))
+            tilts_floor, offset_floor = floor_bound(tilts, offset, nodes.floors)
+            for kind, info in ((ObservationKind.PLANE_FLOOR if tilts_floor else ObservationKind.PLANE, tilts),
+                               (ObservationKind.PLANE_OFFSET_FLOOR if offset_floor else ObservationKind.PLANE_OFFSET,
+                                offset)):
+                observations.append(RelativeObservation(kind, k, node, Z, info, SCAN_PLANE_RANK[kind]))
         observations.append(RelativeObservation(ObservationKind.STATION, node, -1, F, gauge.copy(), 3))
     if not quats:
         return Pose(np.zeros((0, 4)), np.zeros((0, 3))), observations

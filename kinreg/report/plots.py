@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from kinreg.report.text import _count, _esc, _fmt, _get, _number, _numbers
+from kinreg.types import SCAN_PLANE_RANK
 
 # Colours: trajectory before/after, the three axes and 3D, link status (colour-blind safe-ish).
 GREY = "#9a9a9a"
@@ -472,7 +473,7 @@ def _normal_density(y: float) -> float:
     return math.exp(-y * y / 2) / math.sqrt(2 * math.pi)
 
 
-_SCAN_PLANE_DOF = {"plane": 2, "plane offset": 1, "plane (floor)": 2, "plane offset (floor)": 1}
+_SCAN_PLANE_DOF = {kind.value: rank for kind, rank in SCAN_PLANE_RANK.items()}
 
 
 def _residual_dofs(report: dict[str, Any], kind: str) -> dict[int, float]:

@@ -18,7 +18,16 @@ import numpy as np
 
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.io.atomic import atomic_path
-from kinreg.types import BlockResult, Link, LinkStatus, ObservationKind, ObservationTest, Plane, Station
+from kinreg.types import (
+    SCAN_PLANE_RANK,
+    BlockResult,
+    Link,
+    LinkStatus,
+    ObservationKind,
+    ObservationTest,
+    Plane,
+    Station,
+)
 
 # METHOD.md section 6: fixed names and order, other tools read them.
 STATIONS_HEADER = ["station", "t", "t_start", "t_end", "x", "y", "z", "qw", "qx", "qy", "qz",
@@ -120,8 +129,7 @@ def _plane_tests(result: BlockResult, nodes: PlaneNodes) -> dict[tuple[int, int]
     out = {}
     taken = [0] * len(nodes)  # the observations of a physical plane come in its members' order
     for t in result.tests:
-        tilts = t.kind in (ObservationKind.PLANE, ObservationKind.PLANE_FLOOR)
-        if tilts and 0 <= t.j < len(nodes) and taken[t.j] < len(nodes.clusters[t.j]):
+        if SCAN_PLANE_RANK.get(t.kind) == 2 and 0 <= t.j < len(nodes) and taken[t.j] < len(nodes.clusters[t.j]):
             k, pid = nodes.clusters[t.j][taken[t.j]]
             taken[t.j] += 1
             if k == t.i:
