@@ -58,6 +58,10 @@ class SlicingConfig:
     window_points: int = 1_000_000
     min_points: int = 2000  # windows with fewer points are reported and skipped
     temp_dir: str = ""  # where per-window points are spilled; "" means the system default
+    # A LAZ cloud's decoded points are also kept in the spill (its record size per point, 30-38
+    # bytes where the spill takes 24), where the disk has room: the corrected cloud is then
+    # written without decoding the LAZ a second time. No result depends on it.
+    keep_decoded: bool = True
     # Windows that stay quasi-static (duration mode): after the first adjustment, where the drift
     # measured over half a window (the smear) exceeds this share of the planes' noise, the run is
     # sliced again with windows short enough, not below min_window_s (plane detection needs a

@@ -7,6 +7,7 @@ import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import laspy
 import lazrs
@@ -67,6 +68,9 @@ class LasCloudReader:
                 self.path,
             )
         compressed = self.path.suffix.lower() == ".laz" or header.are_points_compressed
+        self.compressed = bool(compressed)
+        self.record_size = int(header.point_format.size)  # bytes per point record
+        self._decodes_all = False
         self.info = CloudInfo(
             path=str(self.path),
             format=f"{'LAZ' if compressed else 'LAS'} {header.version} point format {header.point_format.id}",
@@ -95,10 +99,15 @@ class LasCloudReader:
             intensity = None if raw.intensity is None else np.array(raw.intensity, dtype=np.float32)
             yield CloudChunk(xyz=xyz, stamps_s=stamps, intensity=intensity, first_index=raw.first_index)
 
-    def iter_raw_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS) -> Iterator[RawChunk]:
+    def iter_raw_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS,
+                        copy_to: BinaryIO | None = None) -> Iterator[RawChunk]:
         """Yield the points in file order as stored (integer coordinates, see :class:`RawChunk`),
         ``chunk_points`` at a time. LAZ points are decompressed into one buffer reused for every
-        chunk, so a chunk's arrays are valid only until the next one is requested."""
+        chunk, so a chunk's arrays are valid only until the next one is requested.
+
+        ``copy_to`` (a binary file) gets every point record as decoded, every field of it, in file
+        order and before the time filter shifts a time: the file's points in the layout of its
+        point format (``record_size`` bytes each), which :func:`read_record_chunks` reads back."""
         # Reading again from the start: laspy's reader only goes forwards.
         first = 0
         n_total = self.info.n_points
@@ -107,6 +116,11 @@ class LasCloudReader:
         self.times.restart(n_total)
         try:
             with library_calls(self.path):
+                if copy_to is not None and not self._decodes_all:  # every field, not only those kinreg reads
+                    self._reader.close()
+                    self._reader = laspy.open(self.path, laz_backend=_laz_backend(),
+                                              decompression_selection=laspy.DecompressionSelection.all())
+                    self._decodes_all = True
                 self._reader.seek(0)
                 source = self._reader.point_source
         except _DECODE_ERRORS as e:
@@ -136,6 +150,8 @@ class LasCloudReader:
             n = len(array)
             if n == 0:
                 break
+            if copy_to is not None:
+                copy_to.write(memoryview(array).cast("B"))  # an OSError is the caller's (its disk)
             stamps = self.times.apply(array["gps_time"], self.path) if self._has_time else None
             yield RawChunk(
                 ints=(array["X"], array["Y"], array["Z"]),
@@ -179,6 +195,26 @@ class LasCloudReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def read_record_chunks(path: Path, point_format: laspy.PointFormat, scales: np.ndarray, offsets: np.ndarray,
+                       n_points: int, chunk_points: int) -> Iterator[laspy.ScaleAwarePointRecord]:
+    """The point records :meth:`LasCloudReader.iter_raw_chunks` copied to ``path`` (``n_points``
+    of ``point_format``), ``chunk_points`` at a time, as laspy records with the file's ``scales``
+    and ``offsets``: what laspy's own chunk iterator gives, without decoding. Raises
+    :class:`CloudError` when the copy holds another number of points."""
+    dtype = point_format.dtype()
+    size = path.stat().st_size
+    if size != n_points * dtype.itemsize:
+        raise CloudError(f"the decoded copy holds {size:,} bytes, not {n_points:,} points of "
+                         f"{dtype.itemsize} bytes", path)
+    with open(path, "rb") as f:
+        for first in range(0, n_points, chunk_points):
+            n = min(chunk_points, n_points - first)
+            array = np.fromfile(f, dtype=dtype, count=n)
+            if len(array) != n:
+                raise CloudError(f"the decoded copy ends after {first + len(array):,} of {n_points:,} points", path)
+            yield laspy.ScaleAwarePointRecord(array, point_format, scales, offsets)
 
 
 def _describe(e: BaseException) -> str:

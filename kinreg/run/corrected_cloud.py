@@ -32,6 +32,7 @@ def write_corrected_las(
     T_obj_cloud: Pose | None = None,
     time_offset_s: float = 0.0,
     observer: PointObserver | None = None,
+    records: Path | None = None,
 ) -> int:
     """Stream a LAS/LAZ file, correct every point by its time, write it with the same header,
     point format, order and attributes (only X, Y, Z change). Returns the number of points.
@@ -47,12 +48,16 @@ def write_corrected_las(
     point format, scales, system identifier, software, date, GUID; laspy updates the point counts
     and bounds. ``observer`` (optional) gets each chunk's points before and after the correction
     (object frame) and their times, to gather the report's views of the cloud in the same pass.
+
+    ``records`` (optional) holds the file's points as decoded (slicing's copy,
+    :meth:`~kinreg.io.las.LasCloudReader.iter_raw_chunks`): they are read from there instead of
+    decoding ``source`` again.
     """
     import copy
 
     import laspy
 
-    from kinreg.io.las import _DECODE_ERRORS, _laz_backend
+    from kinreg.io.las import _DECODE_ERRORS, _laz_backend, read_record_chunks
 
     progress = progress or NullProgress()
     source = Path(source)
@@ -77,7 +82,9 @@ def write_corrected_las(
                 # corrected; one chunk in flight each way keeps memory bounded. lazrs holds the GIL
                 # for a whole call, so they overlap little (about 5 % here, benchmarks/RESULTS.md).
                 buffers = _Buffers()
-                chunks = _chunks(reader, chunk_points, source)
+                chunks = (_chunks(reader, chunk_points, source) if records is None else
+                          read_record_chunks(records, reader.header.point_format, reader.header.scales,
+                                             reader.header.offsets, reader.header.point_count, chunk_points))
                 ahead = decoding.submit(next, chunks, None)
                 written: Future[None] | None = None
                 try:

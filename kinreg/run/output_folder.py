@@ -80,6 +80,7 @@ from kinreg.progress import Progress
 from kinreg.run import runs
 from kinreg.run.codecs import planes_to_arrays, stations_to_arrays
 from kinreg.run.spill import (
+    RECORDS_FILE,
     SPILL_COMPLETE,
     SPILL_PREFIX,
     QuasiStaticSequence,
@@ -107,7 +108,7 @@ _FINISHED_MARK = "report.json"
 # Where the spill of the run is while it lives (a JSON file in the cache folder); with several
 # runs, each has its own: spill.json for the first, spill_r2.json for the second, ...
 _SPILL_RECORD = "spill.json"
-_SPILL_FILE = re.compile(r"unit_\d+\.bin")
+_SPILL_FILE = re.compile(rf"unit_\d+\.bin|{re.escape(RECORDS_FILE)}(\.part)?")
 
 
 @dataclass
@@ -454,7 +455,8 @@ def _write_spill_record(cache_folder: Path, key: str, folder: Path, name: str = 
 
 def _remove_spill(folder: Path) -> None:
     """Delete a spill folder, but only one that looks like a spill: the path comes from a file in
-    the user's folder, and a spill holds nothing but unit files and its completion mark."""
+    the user's folder, and a spill holds nothing but unit files, the cloud's decoded copy and its
+    completion mark."""
     if not folder.is_dir() or folder.is_symlink() or not folder.name.startswith(SPILL_PREFIX):
         return
     if all(_SPILL_FILE.fullmatch(p.name) or p.name == SPILL_COMPLETE for p in folder.iterdir()):
@@ -492,18 +494,28 @@ class CachedSlices:
     def __len__(self) -> int:
         return len(self.index["scan_id"])
 
+    def _kept(self) -> QuasiStaticSequence | None:
+        """The open sequence or the kept spill of an interrupted run, if any."""
+        if self._sequence is None:
+            record = _read_spill_record(self.run.cache.folder, self.record)
+            if record is not None and record[0] == self.key:
+                self._sequence = QuasiStaticSequence.reopen(record[1], self.index)
+                if self._sequence is not None:
+                    log.info("slice: the points of an interrupted run are re-used from %s", record[1])
+        return self._sequence
+
+    def records(self) -> Path | None:
+        """The cloud's decoded point records, where the open or kept spill holds them (never
+        slices again for them)."""
+        kept = self._kept()
+        return None if kept is None else kept.records
+
     def sequence(self) -> QuasiStaticSequence:
         """The sequence with its points: the open one, the kept spill of an interrupted run, or
         the cloud sliced again (one pass; the result must equal the cached index)."""
-        if self._sequence is not None:
-            return self._sequence
-        record = _read_spill_record(self.run.cache.folder, self.record)
-        if record is not None and record[0] == self.key:
-            sequence = QuasiStaticSequence.reopen(record[1], self.index)
-            if sequence is not None:
-                log.info("slice: the points of an interrupted run are re-used from %s", record[1])
-                self._sequence = sequence
-                return sequence
+        kept = self._kept()
+        if kept is not None:
+            return kept
         sequence = self._slice_again()  # deletes an incomplete spill first
         if not _same_index(sequence.index_arrays(), self.index):
             raise InputError("changed since its scans were cached, though its size and modification time did "
@@ -532,7 +544,8 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
     input_part = {"trajectory_format": config.input.trajectory_format,
                   "trajectory_columns": config.input.trajectory_columns,
                   "cloud_time_offset_s": config.input.cloud_time_offset_s}
-    slicing_part = dataclasses.replace(config.slicing, temp_dir="")  # where the spill goes is no result
+    # where the spill goes, and whether it keeps the decoded points, is no result
+    slicing_part = dataclasses.replace(config.slicing, temp_dir="", keep_decoded=True)
     key = run.key("slice", trajectory_path, cloud_path, slicing_part, input_part)
     entry = run.load("slice", key)
     record = _read_spill_record(run.cache.folder, name)
@@ -549,7 +562,8 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
                 raise OutputError(f"cannot write the stage cache: {e.strerror or e}", run.cache.folder) from None
             with open_cloud(cloud_path, times=time_filter(config.input)) as cloud:
                 sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
-                                              progress=progress, folder=folder)
+                                              progress=progress, folder=folder,
+                                              keep_records=config.slicing.keep_decoded)
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
             _remove_recorded_spill(run.cache.folder, name)

@@ -278,7 +278,7 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
         sequence_job = start_sequence(staging, sliced, adjusted.result.poses, plan, executor,
                                       views.crs.get("wkt", ""))
         corrected = write_corrected_runs(staging, runs, kinematic.trajectories, corrections, plan, folder, config,
-                                         references, progress, views)
+                                         references, progress, views, sliced)
         clock.lap("corrected cloud")
         write_sequence(staging, sliced, adjusted.result.poses, plan, folder, progress, views.crs.get("wkt", ""),
                        sequence_job)

@@ -7,7 +7,9 @@ frame: ``p_scan = T_obj_scan^-1 p_obj``. The geometry is unchanged, only the par
 The cloud is streamed once. Each point goes to the spill file of its window in a temporary folder
 (float32 offsets from the window's origin, float64 time, float32 intensity: 24 bytes a point), so memory
 stays bounded whatever the cloud's size and whether or not it is time-sorted. Scans are then
-handed out one at a time.
+handed out one at a time. A LAZ cloud's decoded point records can be kept beside them
+(:data:`RECORDS_FILE`, in file order), so that the corrected cloud is written without a second
+decoding.
 
 A finished spill can be reopened (:meth:`QuasiStaticSequence.reopen`) from its small index
 (:meth:`QuasiStaticSequence.index_arrays`, plain arrays for the stage cache): ``kinreg process
@@ -60,6 +62,11 @@ _BLOCK_POINTS = 1 << 15
 
 SPILL_PREFIX = "kinreg-slices-"  # name prefix of every spill folder
 SPILL_COMPLETE = ".complete"  # written into a spill folder after its last point
+# The cloud's point records as decoded, every field, in file order (LAZ input only): the
+# corrected cloud is written from them instead of decoding the LAZ a second time.
+RECORDS_FILE = "records.bin"
+# Free space left beside the spill and the decoded copy; with less, the copy is not made.
+_RECORDS_DISK_MARGIN = 1 << 30
 
 
 class _SpillWriter:
@@ -186,6 +193,12 @@ class QuasiStaticSequence:
             yield self.read_scan(i)
 
     @property
+    def records(self) -> Path | None:
+        """The cloud's decoded point records (:data:`RECORDS_FILE`), where slicing kept them."""
+        path = self._store.folder / RECORDS_FILE
+        return path if path.is_file() else None
+
+    @property
     def folder(self) -> Path:
         """The spill folder."""
         return self._store.folder
@@ -260,6 +273,7 @@ def slice_quasi_static(
     workdir: str | Path | None = None,
     progress: Progress | None = None,
     folder: Path | None = None,
+    keep_records: bool = False,
 ) -> QuasiStaticSequence:
     """Slice the run into quasi-static scans.
 
@@ -271,6 +285,9 @@ def slice_quasi_static(
     ``folder`` (an empty folder from :func:`make_spill_folder`) the points are spilled there
     instead and the folder is the caller's to delete (it is deleted here only when slicing
     fails). Raises :class:`InputError` if no window gets enough points.
+
+    With ``keep_records``, a compressed LAS cloud's decoded point records are also kept in the
+    spill folder (:attr:`QuasiStaticSequence.records`), where the disk has room for them.
     """
     progress = progress or NullProgress()
     edges = unit_edges(trajectory, config)
@@ -280,30 +297,36 @@ def slice_quasi_static(
     mid = 0.5 * (edges[:-1] + edges[1:])
     store = _SpillWriter(folder, trajectory.pose_at(np.clip(mid, trajectory.t_start_s, trajectory.t_end_s)).t_xyz)
     n_read = n_outside = 0
+    stack = contextlib.ExitStack()
     try:
         progress.start("slice", total=cloud.info.n_points, unit="points")
         stager = _Stager(store, chunk_points)
         # LAS/LAZ: the stored integers, converted while the records are assembled (no float64
         # copy of each chunk); other readers: their float64 chunks.
         iter_raw = getattr(cloud, "iter_raw_chunks", None)
-        chunks = iter_raw(chunk_points) if iter_raw is not None else cloud.iter_chunks(chunk_points)
-        for chunk in chunks:
-            if chunk.stamps_s is None:
-                raise InputError("the cloud has no point times", cloud.path)
-            n_read += len(chunk)
-            source = _RawSource(chunk) if isinstance(chunk, RawChunk) else _ChunkSource(chunk)
-            outside, segments = _unit_segments(chunk.stamps_s, edges)
-            n_outside += outside
-            try:
+        records = _records_file(cloud, folder) if keep_records and iter_raw is not None else None
+        if records is not None:
+            stack.enter_context(records)
+            chunks = iter_raw(chunk_points, copy_to=records)
+        else:
+            chunks = iter_raw(chunk_points) if iter_raw is not None else cloud.iter_chunks(chunk_points)
+        try:
+            for chunk in chunks:  # an OSError here is a write of the decoded copy
+                if chunk.stamps_s is None:
+                    raise InputError("the cloud has no point times", cloud.path)
+                n_read += len(chunk)
+                source = _RawSource(chunk) if isinstance(chunk, RawChunk) else _ChunkSource(chunk)
+                outside, segments = _unit_segments(chunk.stamps_s, edges)
+                n_outside += outside
                 for unit, index in segments:
                     stager.spill(unit, source, index)
-            except OSError as e:
-                raise _spill_error(e, folder.parent, n_read) from None
-            progress.advance(len(chunk))
-        progress.finish()
-        try:
+                progress.advance(len(chunk))
+            progress.finish()
             stager.finish()
             store.close()
+            if records is not None:
+                records.close()
+                Path(records.name).replace(folder / RECORDS_FILE)
             (folder / SPILL_COMPLETE).write_bytes(b"")
         except OSError as e:
             raise _spill_error(e, folder.parent, n_read) from None
@@ -312,6 +335,8 @@ def slice_quasi_static(
             store.close()  # waits for queued writes, so that the folder can be deleted
         shutil.rmtree(folder, ignore_errors=True)
         raise
+    finally:
+        stack.close()
 
     windows, kept_ranges, skipped, n_ranges = choose_windows(trajectory, edges, store.counts, config)
 
@@ -339,6 +364,22 @@ def slice_quasi_static(
             f"no window has at least {config.min_points} points ({n_ranges} windows); "
             "use longer windows or a smaller min_points", cloud.path)
     return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=owns_folder)
+
+
+def _records_file(cloud: CloudReader, folder: Path) -> BinaryIO | None:
+    """A new file for ``cloud``'s decoded point records in the spill ``folder`` (renamed to
+    :data:`RECORDS_FILE` when complete); ``None`` when the cloud is not compressed (reading it is
+    as cheap as reading a copy) or the disk lacks room for the copy beside the spill."""
+    if not getattr(cloud, "compressed", False):
+        return None
+    n = cloud.info.n_points
+    need = n * (int(getattr(cloud, "record_size", 0)) + SPILL_RECORD.itemsize) + _RECORDS_DISK_MARGIN
+    free = shutil.disk_usage(folder).free
+    if free < need:
+        log.info("%s: the spill folder's disk has %.1f GB free, a decoded copy of the cloud beside the spill needs "
+                 "%.1f GB: the corrected cloud decodes the cloud again", cloud.path, free / 1e9, need / 1e9)
+        return None
+    return open(folder / f"{RECORDS_FILE}.part", "wb")  # closed by the caller
 
 
 def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:

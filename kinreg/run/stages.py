@@ -541,19 +541,22 @@ def plan_large_outputs(run: RunCache, runs: Sequence[RunInputs], sliced: Sequenc
 def write_corrected_runs(out: Path, runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
                          corrections: Sequence[DriftCorrection], plan: LargeOutputs, run: RunCache,
                          config: KinregConfig, references: ReferencePlanes | None,
-                         progress: Progress, views: PointObserver | None = None) -> list[Trajectory]:
+                         progress: Progress, views: PointObserver | None = None,
+                         sliced: Sequence[CachedSlices] = ()) -> list[Trajectory]:
     """Each run's corrected trajectory and (unless still current) corrected cloud; returns the
-    corrected trajectories."""
+    corrected trajectories. A run's cloud is read from the decoded copy its spill (of ``sliced``)
+    kept, where there is one, else decoded again."""
     T_obj_cloud = None if references is None else references.T_ref_traj
     corrected = [c.apply_to_trajectory(t) for c, t in zip(corrections, trajectories, strict=True)]
     names = [run_output_names(k, len(runs)) for k in range(len(runs))]
     for (_, trajectory_name), trajectory in zip(names, corrected, strict=True):
         write_trajectory_geoslam(out / trajectory_name, trajectory, overwrite=True)
-    for (cloud_name, _), r, correction in zip(names, runs, corrections, strict=True):
+    for k, ((cloud_name, _), r, correction) in enumerate(zip(names, runs, corrections, strict=True)):
         if cloud_name not in plan.current:
             write_corrected_las(r.cloud, out / cloud_name, correction, config.input.chunk_points,
                                 overwrite=True, progress=progress, T_obj_cloud=T_obj_cloud,
-                                time_offset_s=config.input.cloud_time_offset_s, observer=views)
+                                time_offset_s=config.input.cloud_time_offset_s, observer=views,
+                                records=sliced[k].records() if k < len(sliced) else None)
             run.record_output(cloud_name, plan.keys[cloud_name])
         run.count("corrected cloud", reused=int(cloud_name in plan.current),
                   computed=int(cloud_name not in plan.current))
