@@ -151,7 +151,7 @@ class LasCloudReader:
             if n == 0:
                 break
             if copy_to is not None:
-                copy_to.write(memoryview(array).cast("B"))  # an OSError is the caller's (its disk)
+                copy_to.write(array.view(np.uint8).data)  # an OSError is the caller's (its disk)
             stamps = self.times.apply(array["gps_time"], self.path) if self._has_time else None
             yield RawChunk(
                 ints=(array["X"], array["Y"], array["Z"]),

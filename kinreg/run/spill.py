@@ -304,12 +304,14 @@ def slice_quasi_static(
         # LAS/LAZ: the stored integers, converted while the records are assembled (no float64
         # copy of each chunk); other readers: their float64 chunks.
         iter_raw = getattr(cloud, "iter_raw_chunks", None)
-        records = _records_file(cloud, folder) if keep_records and iter_raw is not None else None
-        if records is not None:
-            stack.enter_context(records)
-            chunks = iter_raw(chunk_points, copy_to=records)
+        records = None
+        if iter_raw is None:
+            chunks = cloud.iter_chunks(chunk_points)
         else:
-            chunks = iter_raw(chunk_points) if iter_raw is not None else cloud.iter_chunks(chunk_points)
+            records = _records_file(cloud, folder) if keep_records else None
+            if records is not None:
+                stack.enter_context(records)
+            chunks = iter_raw(chunk_points, copy_to=records)
         try:
             for chunk in chunks:  # an OSError here is a write of the decoded copy
                 if chunk.stamps_s is None:
