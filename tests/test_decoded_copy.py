@@ -14,9 +14,8 @@ from conftest import random_correction, write_synthetic_run
 from kinreg.config import KinregConfig, SlicingConfig, load_config
 from kinreg.errors import CloudError, OutputError
 from kinreg.io.cloud import TimeFilter, open_cloud
-from kinreg.io.las import read_record_chunks
 from kinreg.run import spill
-from kinreg.run.corrected_cloud import write_corrected_las
+from kinreg.run.corrected_cloud import read_record_chunks, write_corrected_las
 from kinreg.run.spill import RECORDS_FILE, slice_quasi_static
 
 
@@ -119,7 +118,7 @@ def test_a_failed_write_of_the_copy_is_the_spills_one_line_error(tmp_path: Path,
 
 def test_process_writes_the_same_corrected_cloud_with_and_without_the_copy(tmp_path: Path,
                                                                            monkeypatch: pytest.MonkeyPatch) -> None:
-    from kinreg.io import las
+    from kinreg.run import corrected_cloud
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import SimulationConfig, simulate_run
@@ -127,8 +126,8 @@ def test_process_writes_the_same_corrected_cloud_with_and_without_the_copy(tmp_p
     write_run(simulate_run(SimulationConfig(seed=5, duration_s=24.0)), tmp_path / "data")
     inputs = ProcessInputs(tmp_path / "data" / "run_trajectory.txt", tmp_path / "data" / "run_cloud.laz")
     read = []
-    real = las.read_record_chunks
-    monkeypatch.setattr(las, "read_record_chunks", lambda *a, **k: read.append(a[0]) or real(*a, **k))
+    real = corrected_cloud.read_record_chunks
+    monkeypatch.setattr(corrected_cloud, "read_record_chunks", lambda *a, **k: read.append(a[0]) or real(*a, **k))
     (tmp_path / "off.toml").write_text("[slicing]\nkeep_decoded = false\n")
     process(inputs, tmp_path / "off", load_config(tmp_path / "off.toml"))
     assert not read

@@ -7,7 +7,7 @@ import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, Protocol
 
 import laspy
 import lazrs
@@ -37,6 +37,12 @@ _SELECTION = (
 
 def _laz_backend() -> tuple[laspy.LazBackend, ...]:
     return tuple(b for b in (laspy.LazBackend.LazrsParallel, laspy.LazBackend.Lazrs) if b.is_available())
+
+
+class ByteSink(Protocol):
+    """Where :meth:`LasCloudReader.iter_raw_chunks` copies the decoded records (a binary file)."""
+
+    def write(self, data: memoryview, /) -> Any: ...
 
 
 class LasCloudReader:
@@ -100,14 +106,14 @@ class LasCloudReader:
             yield CloudChunk(xyz=xyz, stamps_s=stamps, intensity=intensity, first_index=raw.first_index)
 
     def iter_raw_chunks(self, chunk_points: int = DEFAULT_CHUNK_POINTS,
-                        copy_to: BinaryIO | None = None) -> Iterator[RawChunk]:
+                        copy_to: ByteSink | None = None) -> Iterator[RawChunk]:
         """Yield the points in file order as stored (integer coordinates, see :class:`RawChunk`),
         ``chunk_points`` at a time. LAZ points are decompressed into one buffer reused for every
         chunk, so a chunk's arrays are valid only until the next one is requested.
 
         ``copy_to`` (a binary file) gets every point record as decoded, every field of it, in file
         order and before the time filter shifts a time: the file's points in the layout of its
-        point format (``record_size`` bytes each), which :func:`read_record_chunks` reads back."""
+        point format (``record_size`` bytes each)."""
         # Reading again from the start: laspy's reader only goes forwards.
         first = 0
         n_total = self.info.n_points
@@ -195,26 +201,6 @@ class LasCloudReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def read_record_chunks(path: Path, point_format: laspy.PointFormat, scales: np.ndarray, offsets: np.ndarray,
-                       n_points: int, chunk_points: int) -> Iterator[laspy.ScaleAwarePointRecord]:
-    """The point records :meth:`LasCloudReader.iter_raw_chunks` copied to ``path`` (``n_points``
-    of ``point_format``), ``chunk_points`` at a time, as laspy records with the file's ``scales``
-    and ``offsets``: what laspy's own chunk iterator gives, without decoding. Raises
-    :class:`CloudError` when the copy holds another number of points."""
-    dtype = point_format.dtype()
-    size = path.stat().st_size
-    if size != n_points * dtype.itemsize:
-        raise CloudError(f"the decoded copy holds {size:,} bytes, not {n_points:,} points of "
-                         f"{dtype.itemsize} bytes", path)
-    with open(path, "rb") as f:
-        for first in range(0, n_points, chunk_points):
-            n = min(chunk_points, n_points - first)
-            array = np.fromfile(f, dtype=dtype, count=n)
-            if len(array) != n:
-                raise CloudError(f"the decoded copy ends after {first + len(array):,} of {n_points:,} points", path)
-            yield laspy.ScaleAwarePointRecord(array, point_format, scales, offsets)
 
 
 def _describe(e: BaseException) -> str:

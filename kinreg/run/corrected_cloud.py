@@ -14,6 +14,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import FloatArray, Pose
 from kinreg.io.atomic import atomic_path
 from kinreg.progress import NullProgress, Progress
+from kinreg.run.direct_io import read_pieces
 
 
 class PointObserver(Protocol):
@@ -57,7 +58,7 @@ def write_corrected_las(
 
     import laspy
 
-    from kinreg.io.las import _DECODE_ERRORS, _laz_backend, read_record_chunks
+    from kinreg.io.las import _DECODE_ERRORS, _laz_backend
 
     progress = progress or NullProgress()
     source = Path(source)
@@ -200,6 +201,25 @@ def _write_points(writer: Any, points: Any, extremes: list[tuple[float, float]])
     if extra_bytes:
         extra_bytes[0].grow(points)
     writer.point_writer.write_points(points)
+
+
+def read_record_chunks(path: Path, point_format: Any, scales: Any, offsets: Any, n_points: int,
+                       chunk_points: int) -> Iterator[Any]:
+    """The point records slicing copied to ``path`` (``n_points`` of the laspy ``point_format``,
+    :meth:`~kinreg.io.las.LasCloudReader.iter_raw_chunks`), ``chunk_points`` at a time, as laspy
+    records with the file's ``scales`` and ``offsets``: what laspy's chunk iterator gives, without
+    decoding. A chunk lives in one of three buffers taken in turn (:func:`read_pieces`): valid
+    while the next is read and the one before is encoded, as :func:`write_corrected_las` uses
+    them. Raises :class:`CloudError` when the copy holds another number of points."""
+    import laspy
+
+    dtype = point_format.dtype()
+    size = path.stat().st_size
+    if size != n_points * dtype.itemsize:
+        raise CloudError(f"the decoded copy holds {size:,} bytes, not {n_points:,} points of "
+                         f"{dtype.itemsize} bytes", path)
+    for piece in read_pieces(path, chunk_points * dtype.itemsize, n_buffers=3):
+        yield laspy.ScaleAwarePointRecord(np.frombuffer(piece, dtype=dtype), point_format, scales, offsets)
 
 
 def _raw_xyz(points: Any) -> tuple[Any, Any, Any]:

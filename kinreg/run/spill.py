@@ -40,6 +40,7 @@ from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
 from kinreg.progress import NullProgress, Progress
 from kinreg.run.codecs import windows_from_arrays, windows_to_arrays
+from kinreg.run.direct_io import DirectWriter
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, SkippedWindow, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
@@ -368,7 +369,7 @@ def slice_quasi_static(
     return QuasiStaticSequence(tuple(windows), tuple(kept_ranges), store, summary, owns_folder=owns_folder)
 
 
-def _records_file(cloud: CloudReader, folder: Path) -> BinaryIO | None:
+def _records_file(cloud: CloudReader, folder: Path) -> DirectWriter | None:
     """A new file for ``cloud``'s decoded point records in the spill ``folder`` (renamed to
     :data:`RECORDS_FILE` when complete); ``None`` when the cloud is not compressed (reading it is
     as cheap as reading a copy) or the disk lacks room for the copy beside the spill."""
@@ -381,7 +382,7 @@ def _records_file(cloud: CloudReader, folder: Path) -> BinaryIO | None:
         log.info("%s: the spill folder's disk has %.1f GB free, a decoded copy of the cloud beside the spill needs "
                  "%.1f GB: the corrected cloud decodes the cloud again", cloud.path, free / 1e9, need / 1e9)
         return None
-    return open(folder / f"{RECORDS_FILE}.part", "wb")  # closed by the caller
+    return DirectWriter(folder / f"{RECORDS_FILE}.part")
 
 
 def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:
