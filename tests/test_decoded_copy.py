@@ -16,7 +16,7 @@ from kinreg.errors import CloudError, OutputError
 from kinreg.io.cloud import TimeFilter, open_cloud
 from kinreg.run import spill
 from kinreg.run.corrected_cloud import read_record_chunks, write_corrected_las
-from kinreg.run.spill import RECORDS_FILE, slice_quasi_static
+from kinreg.run.spill import RECORDS_FILE, adopt_records, make_spill_folder, slice_quasi_static
 
 
 def write_busy_cloud(folder: Path, point_format: int = 7):
@@ -133,5 +133,53 @@ def test_process_writes_the_same_corrected_cloud_with_and_without_the_copy(tmp_p
     assert not read
     process(inputs, tmp_path / "on", KinregConfig())
     assert len(read) == 1 and read[0].name == RECORDS_FILE
+    for name in ("corrected.laz", "sequence.e57", "stations.csv", "trajectory_corrected.txt"):
+        assert (tmp_path / "on" / name).read_bytes() == (tmp_path / "off" / name).read_bytes(), name
+
+
+def test_slicing_again_reads_the_first_slicings_copy_and_links_it(tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    from kinreg.io.las import LasCloudReader
+
+    run = write_busy_cloud(tmp_path / "run")
+    config = SlicingConfig(window_s=2.5, min_points=100)
+    with open_cloud(run.cloud_path) as cloud:
+        expected = slice_quasi_static(run.trajectory, cloud, config, 7_000, workdir=tmp_path)
+    with slice_keeping(run, tmp_path) as first:
+        monkeypatch.setattr(LasCloudReader, "_decoded_arrays", lambda *a, **k: pytest.fail("decoded again"))
+        folder = make_spill_folder(config, tmp_path)
+        copy = adopt_records(first.records, folder)
+        assert copy is not None and copy.stat().st_ino == first.records.stat().st_ino  # linked, not copied
+        with open_cloud(run.cloud_path, decoded=copy) as cloud, \
+                slice_quasi_static(run.trajectory, cloud, config, 7_000, folder=folder, keep_records=True) as again:
+            assert again.records == copy
+            assert again.summary == expected.summary and len(again) == len(expected) > len(first)
+            for i in range(len(again)):
+                a, b = again.read_scan(i), expected.read_scan(i)
+                assert np.array_equal(a.points_xyz, b.points_xyz) and np.array_equal(a.stamps_s, b.stamps_s)
+    expected.close()
+
+
+def test_process_sliced_again_decodes_the_cloud_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from kinreg.io.las import LasCloudReader
+    from kinreg.run.pipeline import ProcessInputs, process
+    from kinreg.simulation.files import write_run
+    from kinreg.simulation.run import SimulationConfig, simulate_run
+
+    write_run(simulate_run(SimulationConfig(seed=5, duration_s=24.0)), tmp_path / "data")
+    inputs = ProcessInputs(tmp_path / "data" / "run_trajectory.txt", tmp_path / "data" / "run_cloud.laz")
+    decodes = []
+    real = LasCloudReader._decoded_arrays
+    monkeypatch.setattr(LasCloudReader, "_decoded_arrays",
+                        lambda self, *a, **k: decodes.append(1) or real(self, *a, **k))
+    again = "[slicing]\nmax_smear_share = 1e-9\nmin_window_s = 3.0\n"  # any smear: sliced again with 3 s windows
+    (tmp_path / "off.toml").write_text(again + "keep_decoded = false\n")
+    (tmp_path / "on.toml").write_text(again)
+    off = process(inputs, tmp_path / "off", load_config(tmp_path / "off.toml"))
+    assert len(decodes) == 2  # each slicing (and the corrected cloud through laspy's own reader)
+    decodes.clear()
+    process(inputs, tmp_path / "on", load_config(tmp_path / "on.toml"))
+    assert len(decodes) == 1
+    assert off.n_stations == 8  # 3 s windows
     for name in ("corrected.laz", "sequence.e57", "stations.csv", "trajectory_corrected.txt"):
         assert (tmp_path / "on" / name).read_bytes() == (tmp_path / "off" / name).read_bytes(), name

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinreg.run import direct_io
-from kinreg.run.direct_io import ALIGN, DirectWriter, read_pieces
+from kinreg.io import direct_io
+from kinreg.io.direct_io import ALIGN, DirectWriter, read_pieces
 
 
 @pytest.mark.parametrize("direct", [True, False], ids=["O_DIRECT", "buffered"])

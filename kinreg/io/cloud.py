@@ -140,12 +140,15 @@ LAS_SUFFIXES = {".las", ".laz"}
 E57_SUFFIXES = {".e57"}
 
 
-def open_cloud(path: str | Path, require_time: bool = True, times: TimeFilter | None = None) -> CloudReader:
+def open_cloud(path: str | Path, require_time: bool = True, times: TimeFilter | None = None,
+               decoded: Path | None = None) -> CloudReader:
     """Open a LAS/LAZ or E57 cloud for streaming.
 
     With ``require_time`` a file without per-point times (LAS ``gps_time``, E57 ``timeStamp``)
     raises :class:`CloudError` naming the file. ``times`` shifts and counts the point times
-    (:class:`TimeFilter`; default: unchanged, counted, never refused).
+    (:class:`TimeFilter`; default: unchanged, counted, never refused). ``decoded`` (LAS/LAZ): the
+    file's points as decoded before, read instead of decoding them
+    (:meth:`~kinreg.io.las.LasCloudReader.iter_raw_chunks`).
     """
     p = Path(path)
     if not p.exists():
@@ -156,7 +159,7 @@ def open_cloud(path: str | Path, require_time: bool = True, times: TimeFilter | 
     if suffix in LAS_SUFFIXES:
         from kinreg.io.las import LasCloudReader
 
-        return LasCloudReader(p, require_time=require_time, times=times)
+        return LasCloudReader(p, require_time=require_time, times=times, decoded=decoded)
     if suffix in E57_SUFFIXES:
         from kinreg.io.e57 import E57CloudReader
 

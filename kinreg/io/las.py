@@ -15,6 +15,7 @@ import numpy as np
 
 from kinreg.errors import CloudError
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo, RawChunk, TimeFilter
+from kinreg.io.direct_io import read_pieces
 from kinreg.io.las_header import check_las_file
 from kinreg.io.quiet import library_calls
 from kinreg.types import CloudChunk
@@ -55,8 +56,11 @@ class LasCloudReader:
     the trajectory's time base and counts the points whose time is not finite.
     """
 
-    def __init__(self, path: str | Path, require_time: bool = True, times: TimeFilter | None = None) -> None:
+    def __init__(self, path: str | Path, require_time: bool = True, times: TimeFilter | None = None,
+                 decoded: Path | None = None) -> None:
         self.path = Path(path)
+        self.decoded = decoded  # the file's points as decoded before (iter_raw_chunks' copy_to)
+        self._every_field = False  # opened to decode every field, not only those kinreg reads
         self.times = times or TimeFilter()
         self.facts = check_las_file(self.path)
         try:
@@ -76,7 +80,6 @@ class LasCloudReader:
         compressed = self.path.suffix.lower() == ".laz" or header.are_points_compressed
         self.compressed = bool(compressed)
         self.record_size = int(header.point_format.size)  # bytes per point record
-        self._decodes_all = False
         self.info = CloudInfo(
             path=str(self.path),
             format=f"{'LAZ' if compressed else 'LAS'} {header.version} point format {header.point_format.id}",
@@ -113,21 +116,48 @@ class LasCloudReader:
 
         ``copy_to`` (a binary file) gets every point record as decoded, every field of it, in file
         order and before the time filter shifts a time: the file's points in the layout of its
-        point format (``record_size`` bytes each)."""
-        # Reading again from the start: laspy's reader only goes forwards.
+        point format (``record_size`` bytes each). A reader given such a copy (``decoded``) reads
+        the points from there instead of decoding them."""
+        first = 0
+        n_total = self.info.n_points
+        self.times.restart(n_total)
+        arrays = (self._decoded_arrays(chunk_points, every_field=copy_to is not None) if self.decoded is None
+                  else self._copied_arrays(chunk_points))
+        for array in arrays:
+            n = len(array)
+            if n == 0:
+                break
+            if copy_to is not None:
+                copy_to.write(array.view(np.uint8).data)  # an OSError is the caller's (its disk)
+            stamps = self.times.apply(array["gps_time"], self.path) if self._has_time else None
+            yield RawChunk(
+                ints=(array["X"], array["Y"], array["Z"]),
+                scales=(self._scales[0], self._scales[1], self._scales[2]),
+                offsets=(self._offsets[0], self._offsets[1], self._offsets[2]),
+                stamps_s=stamps,
+                intensity=array["intensity"] if "intensity" in self.info.fields else None,
+                first_index=first,
+            )
+            first += n
+        if first < n_total:
+            raise CloudError(f"file ends after {first:,} of {n_total:,} points (truncated?)", self.path)
+        self.times.finish(self.path)
+
+    def _decoded_arrays(self, chunk_points: int, every_field: bool = False) -> Iterator[np.ndarray]:
+        """The file's point records decoded from the start, ``chunk_points`` at a time, each in
+        one buffer reused for every chunk; the fields kinreg reads, or ``every_field``."""
         first = 0
         n_total = self.info.n_points
         point_format = self._reader.header.point_format
         dtype = point_format.dtype()
-        self.times.restart(n_total)
         try:
             with library_calls(self.path):
-                if copy_to is not None and not self._decodes_all:  # every field, not only those kinreg reads
+                if every_field and not self._every_field:
                     self._reader.close()
                     self._reader = laspy.open(self.path, laz_backend=_laz_backend(),
                                               decompression_selection=laspy.DecompressionSelection.all())
-                    self._decodes_all = True
-                self._reader.seek(0)
+                    self._every_field = True
+                self._reader.seek(0)  # from the start again: laspy's reader only goes forwards
                 source = self._reader.point_source
         except _DECODE_ERRORS as e:
             raise CloudError(f"cannot decode the points (truncated or corrupted?): {_describe(e)}", self.path) from None
@@ -153,24 +183,22 @@ class LasCloudReader:
                     f"decoding failed after {first:,} of {n_total:,} points (truncated or corrupted?): {_describe(e)}",
                     self.path,
                 ) from None
-            n = len(array)
-            if n == 0:
-                break
-            if copy_to is not None:
-                copy_to.write(array.view(np.uint8).data)  # an OSError is the caller's (its disk)
-            stamps = self.times.apply(array["gps_time"], self.path) if self._has_time else None
-            yield RawChunk(
-                ints=(array["X"], array["Y"], array["Z"]),
-                scales=(self._scales[0], self._scales[1], self._scales[2]),
-                offsets=(self._offsets[0], self._offsets[1], self._offsets[2]),
-                stamps_s=stamps,
-                intensity=array["intensity"] if "intensity" in self.info.fields else None,
-                first_index=first,
-            )
-            first += n
-        if first < n_total:
-            raise CloudError(f"file ends after {first:,} of {n_total:,} points (truncated?)", self.path)
-        self.times.finish(self.path)
+            if len(array) == 0:
+                return
+            yield array
+            first += len(array)
+
+    def _copied_arrays(self, chunk_points: int) -> Iterator[np.ndarray]:
+        """The point records of the decoded copy ``decoded``, ``chunk_points`` at a time (each
+        valid until the next is taken, and writable); a copy of another size is an error naming it."""
+        assert self.decoded is not None
+        dtype = self._reader.header.point_format.dtype()
+        size = self.decoded.stat().st_size
+        if size != self.info.n_points * dtype.itemsize:
+            raise CloudError(f"the decoded copy of {self.path.name} holds {size:,} bytes, not {self.info.n_points:,} "
+                             f"points of {dtype.itemsize} bytes", self.decoded)
+        for piece in read_pieces(self.decoded, chunk_points * dtype.itemsize, n_buffers=2):
+            yield np.frombuffer(piece, dtype=dtype)
 
     def sample_times(self, n_samples: int = 16, points_per_sample: int = 1000) -> np.ndarray:
         """Point times (shifted by the time filter's offset, unfiltered) of ``n_samples`` runs of

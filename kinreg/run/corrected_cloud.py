@@ -13,8 +13,8 @@ from kinreg.errors import CloudError
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import FloatArray, Pose
 from kinreg.io.atomic import atomic_path
+from kinreg.io.direct_io import read_pieces
 from kinreg.progress import NullProgress, Progress
-from kinreg.run.direct_io import read_pieces
 
 
 class PointObserver(Protocol):

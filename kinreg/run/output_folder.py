@@ -84,6 +84,7 @@ from kinreg.run.spill import (
     SPILL_COMPLETE,
     SPILL_PREFIX,
     QuasiStaticSequence,
+    adopt_records,
     make_spill_folder,
     slice_quasi_static,
     summary_from_arrays,
@@ -534,12 +535,15 @@ def _same_index(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> boo
 
 @contextmanager
 def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajectory: Trajectory,
-               config: KinregConfig, progress: Progress, run_index: int = 0) -> Iterator[CachedSlices]:
+               config: KinregConfig, progress: Progress, run_index: int = 0,
+               decoded: Path | None = None) -> Iterator[CachedSlices]:
     """The ``slice`` stage through the cache (see the module docstring). On leaving, also by an
     exception or Ctrl-C, the spill is deleted; only a killed process (SIGKILL, SIGTERM, power cut)
     leaves it, and then ``--resume`` (or ``--overwrite``) of the same folder finds it. Each of
     several runs (``run_index``, 0-based) keeps its own spill record, so that their spills live
-    side by side; the cache entries need nothing more: they are keyed by the run's files."""
+    side by side; the cache entries need nothing more: they are keyed by the run's files.
+    ``decoded``: the cloud's points as an earlier slicing decoded them, read instead of decoding
+    the cloud where the file is still there."""
     name = spill_record_name(run_index)
     input_part = {"trajectory_format": config.input.trajectory_format,
                   "trajectory_columns": config.input.trajectory_columns,
@@ -548,19 +552,19 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
     slicing_part = dataclasses.replace(config.slicing, temp_dir="", keep_decoded=True)
     key = run.key("slice", trajectory_path, cloud_path, slicing_part, input_part)
     entry = run.load("slice", key)
-    record = _read_spill_record(run.cache.folder, name)
-    if record is not None and (entry is None or record[0] != key):
-        _remove_recorded_spill(run.cache.folder, name)  # an unfinished spill, or one of other inputs
+    # the earlier slicing's decoded copy, linked into the new spill before the earlier spill goes
+    fresh = make_spill_folder(config.slicing) if entry is None and decoded is not None else None
+    copy = adopt_records(decoded, fresh) if fresh is not None else None
 
-    def slice_now() -> QuasiStaticSequence:
-        _remove_recorded_spill(run.cache.folder, name)
-        folder = make_spill_folder(config.slicing)
+    def slice_now(folder: Path | None = None, copy: Path | None = None) -> QuasiStaticSequence:
+        folder = folder or make_spill_folder(config.slicing)
         try:
+            _remove_recorded_spill(run.cache.folder, name)
             try:
                 _write_spill_record(run.cache.folder, key, folder, name)
             except OSError as e:
                 raise OutputError(f"cannot write the stage cache: {e.strerror or e}", run.cache.folder) from None
-            with open_cloud(cloud_path, times=time_filter(config.input)) as cloud:
+            with open_cloud(cloud_path, times=time_filter(config.input), decoded=copy) as cloud:
                 sequence = slice_quasi_static(trajectory, cloud, config.slicing, config.input.chunk_points,
                                               progress=progress, folder=folder,
                                               keep_records=config.slicing.keep_decoded)
@@ -572,13 +576,23 @@ def sliced_run(run: RunCache, trajectory_path: Path, cloud_path: Path, trajector
         return sequence
 
     sequence = None
-    if entry is None:
-        with open_cloud(cloud_path) as cloud:
-            n_points_input = cloud.info.n_points
-        sequence = slice_now()
+    try:
+        record = _read_spill_record(run.cache.folder, name)
+        if record is not None and (entry is None or record[0] != key):
+            _remove_recorded_spill(run.cache.folder, name)  # an unfinished spill, or one of other inputs
+        if entry is None:
+            with open_cloud(cloud_path) as cloud:
+                n_points_input = cloud.info.n_points
+            sequence = slice_now(fresh, copy)
+    except BaseException:
+        if fresh is not None:
+            shutil.rmtree(fresh, ignore_errors=True)
+        raise
+    if sequence is not None:
         index = sequence.index_arrays()
         run.store("slice", key, index, {"n_points_input": n_points_input})
     else:
+        assert entry is not None
         index, n_points_input = entry.arrays, int(entry.meta["n_points_input"])
         run.count("slice", reused=1)
         log.info("slice: %d scans re-used from the stage cache", len(index["scan_id"]))

@@ -334,18 +334,20 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
     log.warning("the drift smears the planes by %.1f mm over half a window (median): sliced again with %.1f s "
                 "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), window, config.slicing.window_s)
     again = estimate_network(stack, folder, inputs, trajectories, references, with_window(config, window), progress,
-                             executor, clock, control)
+                             executor, clock, control, decoded=[slices.records() for slices in est.sliced])
     return dataclasses.replace(again, first_window_s=config.slicing.window_s), with_window(config, window)
 
 
 def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                      trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
                      progress: Progress, executor: ExecutorContext, clock: StageClock,
-                     control: Assignment | None = None) -> EstimatedNetwork:
+                     control: Assignment | None = None, decoded: Sequence[Path | None] = ()) -> EstimatedNetwork:
     """Slice every run (its spill kept open on ``stack``), detect planes (and the static scans'),
-    link and adjust: the stages of :func:`process` before the outputs, each through the stage cache."""
+    link and adjust: the stages of :func:`process` before the outputs, each through the stage cache.
+    ``decoded``: each run's cloud as an earlier slicing decoded it, where it kept it."""
     runs, static = inputs.runs, config.static if inputs.static is not None else None
-    sliced = [stack.enter_context(sliced_run(folder, r.trajectory, r.cloud, trajectories[k], config, progress, k))
+    sliced = [stack.enter_context(sliced_run(folder, r.trajectory, r.cloud, trajectories[k], config, progress, k,
+                                             decoded[k] if k < len(decoded) else None))
               for k, r in enumerate(runs)]
     clock.lap("slice")
     kinematic = detect_run_planes(sliced, trajectories, references, config, progress, executor, folder)

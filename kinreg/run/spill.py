@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import logging
+import os
 import shutil
 import tempfile
 from bisect import bisect_left, bisect_right
@@ -38,9 +39,9 @@ from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.estimate.slicing import choose_windows, unit_edges
 from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
+from kinreg.io.direct_io import DirectWriter
 from kinreg.progress import NullProgress, Progress
 from kinreg.run.codecs import windows_from_arrays, windows_to_arrays
-from kinreg.run.direct_io import DirectWriter
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, SkippedWindow, SlicingSummary, Trajectory
 
 log = logging.getLogger(__name__)
@@ -372,8 +373,10 @@ def slice_quasi_static(
 def _records_file(cloud: CloudReader, folder: Path) -> DirectWriter | None:
     """A new file for ``cloud``'s decoded point records in the spill ``folder`` (renamed to
     :data:`RECORDS_FILE` when complete); ``None`` when the cloud is not compressed (reading it is
-    as cheap as reading a copy) or the disk lacks room for the copy beside the spill."""
-    if not getattr(cloud, "compressed", False):
+    as cheap as reading a copy), the disk lacks room for the copy beside the spill, or the cloud
+    is read from the copy in ``folder`` already (:func:`adopt_records`)."""
+    decoded = getattr(cloud, "decoded", None)
+    if not getattr(cloud, "compressed", False) or (decoded is not None and Path(decoded).parent == folder):
         return None
     n = cloud.info.n_points
     need = n * (int(getattr(cloud, "record_size", 0)) + SPILL_RECORD.itemsize) + _RECORDS_DISK_MARGIN
@@ -383,6 +386,19 @@ def _records_file(cloud: CloudReader, folder: Path) -> DirectWriter | None:
                  "%.1f GB: the corrected cloud decodes the cloud again", cloud.path, free / 1e9, need / 1e9)
         return None
     return DirectWriter(folder / f"{RECORDS_FILE}.part")
+
+
+def adopt_records(decoded: Path | None, folder: Path) -> Path | None:
+    """The decoded copy of another spill (``decoded``, of the same cloud) linked into the new
+    spill ``folder``, so that slicing again reads it instead of decoding the cloud, and it
+    outlives the other spill; ``None`` where there is none or the file system cannot link it."""
+    if decoded is None or not decoded.is_file():
+        return None
+    try:
+        os.link(decoded, folder / RECORDS_FILE)
+    except OSError:
+        return None
+    return folder / RECORDS_FILE
 
 
 def _spill_error(e: OSError, folder: Path, n_read: int) -> OutputError:
