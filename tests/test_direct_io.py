@@ -4,6 +4,7 @@ with O_DIRECT and without; a failed write is raised, not lost in the background 
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 from pathlib import Path
 
@@ -63,3 +64,27 @@ def test_a_file_that_ends_early_is_an_error(tmp_path: Path, monkeypatch: pytest.
     monkeypatch.setattr(direct_io.os, "preadv", lambda fd, buffers, offset: 0)
     with pytest.raises(OSError, match="ends after 0 of 12,288 bytes"):
         list(read_pieces(path, ALIGN))
+
+
+def test_a_file_system_that_refuses_an_aligned_direct_transfer_gets_a_buffered_one(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    real_write, real_preadv = os.write, os.preadv
+    refused = []
+
+    def picky(real):
+        def call(fd, *args):
+            if fcntl.fcntl(fd, fcntl.F_GETFL) & getattr(os, "O_DIRECT", 0):
+                refused.append(real.__name__)
+                raise OSError(errno.EINVAL, "Invalid argument")
+            return real(fd, *args)
+        return call
+
+    monkeypatch.setattr(direct_io.os, "write", picky(real_write))
+    monkeypatch.setattr(direct_io.os, "preadv", picky(real_preadv))
+    data = bytes(range(256)) * 100
+    path = tmp_path / "copy.bin"
+    with DirectWriter(path, buffer_bytes=ALIGN) as writer:
+        writer.write(data)
+    assert b"".join(bytes(p) for p in read_pieces(path, 1000)) == data
+    if hasattr(os, "O_DIRECT"):
+        assert refused == ["write", "preadv"]  # each refused once, then buffered

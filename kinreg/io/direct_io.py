@@ -117,9 +117,26 @@ class DirectWriter:
             self._abort()
 
 
+def _without_direct(fd: int) -> bool:
+    """Turn ``O_DIRECT`` off on ``fd``; whether it was on (a file system may take the flag at open
+    and refuse an aligned transfer all the same, with ``EINVAL``)."""
+    import fcntl
+
+    flags = fcntl.fcntl(fd, fcntl.F_GETFL)
+    direct = getattr(os, "O_DIRECT", 0)
+    if not flags & direct:
+        return False
+    fcntl.fcntl(fd, fcntl.F_SETFL, flags & ~direct)
+    return True
+
+
 def _write_all(fd: int, view: memoryview) -> None:
     while len(view):
-        view = view[os.write(fd, view):]
+        try:
+            view = view[os.write(fd, view):]
+        except OSError as e:
+            if e.errno != errno.EINVAL or not _without_direct(fd):
+                raise
 
 
 def read_pieces(path: str | Path, piece_bytes: int, n_buffers: int = 3) -> Iterator[memoryview]:
@@ -138,7 +155,12 @@ def read_pieces(path: str | Path, piece_bytes: int, n_buffers: int = 3) -> Itera
             end = _round_up(start + length) - first  # whole blocks; short at the end of the file
             done = 0
             while done < start + length - first:
-                n = os.preadv(fd, [buffer[done:end]], first + done)
+                try:
+                    n = os.preadv(fd, [buffer[done:end]], first + done)
+                except OSError as e:
+                    if e.errno != errno.EINVAL or not _without_direct(fd):
+                        raise
+                    continue
                 if n == 0:
                     raise OSError(errno.EIO, f"{path}: ends after {first + done:,} of {size:,} bytes")
                 done += n
