@@ -260,6 +260,8 @@ class E57SequenceWriter:
         self.tmp_path = folder / f".{self.path.name}.tmp-{os.getpid()}"
         self.n_scans = 0
         self._entries: list[str] = []  # each scan's data3D child, XML
+        self._lo: list[float] = []  # the scan's bounds (from _validate)
+        self._hi: list[float] = []
         self._file: _PagedFile | None = None
         try:
             self._file = _PagedFile(self.tmp_path)
@@ -297,7 +299,11 @@ class E57SequenceWriter:
         label = f"scan {scan.scan_id} ('{scan.name}')"
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise OutputError(f"{label}: points_xyz must be (n, 3), got {xyz.shape}", self.path)
-        if not np.isfinite(xyz).all():
+        # Column by column (numpy's reductions along the first axis of (n, 3) are slow); a NaN or an
+        # infinity shows in the minimum or the maximum, so these are the finiteness check as well.
+        self._lo = [float(xyz[:, i].min()) if n else 0.0 for i in range(3)]
+        self._hi = [float(xyz[:, i].max()) if n else 0.0 for i in range(3)]
+        if not np.isfinite(self._lo + self._hi).all():
             bad = int((~np.isfinite(xyz).all(axis=1)).sum())
             raise OutputError(f"{label}: {bad} points with non-finite coordinates", self.path)
         stamps = None if scan.stamps_s is None else np.asarray(scan.stamps_s, dtype=np.float64)
@@ -307,7 +313,7 @@ class E57SequenceWriter:
                 continue
             if values.shape != (n,):
                 raise OutputError(f"{label}: {name} must be ({n},), got {values.shape}", self.path)
-            if not np.isfinite(values).all():
+            if n and not np.isfinite([values.min(), values.max()]).all():
                 raise OutputError(f"{label}: {name} has non-finite values", self.path)
         pose = scan.T_obj_scan
         if pose.shape != () or not (np.isfinite(pose.quat_wxyz).all() and np.isfinite(pose.t_xyz).all()):
@@ -369,9 +375,7 @@ class E57SequenceWriter:
                 xml.append(_structure(6, key, [_float(8, "dateTimeValue", float(value)),
                                                _integer(8, "isAtomicClockReferenced", 0)]))
         if n > 0:
-            # Column by column: numpy's reductions along the first axis of (n, 3) are slow.
-            lo = [float(xyz[:, i].min()) for i in range(3)]
-            hi = [float(xyz[:, i].max()) for i in range(3)]
+            lo, hi = self._lo, self._hi
             xml.append(_structure(6, "cartesianBounds", [
                 _float(8, f"{axis}{which}", bound[i])
                 for i, axis in enumerate("xyz") for which, bound in (("Minimum", lo), ("Maximum", hi))
