@@ -23,6 +23,7 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import laspy
 import numpy as np
@@ -31,10 +32,9 @@ from clirunner import run_cli
 from conftest import SyntheticRun, write_synthetic_run
 from e57fixtures import write_raw_e57_scan
 from kinreg_cli.main import main
-from pye57 import libe57
 
 from kinreg.geometry import Pose, rotvec_to_quat
-from kinreg.io import atomic
+from kinreg.io import atomic, direct_io, e57_writer
 from kinreg.io.e57_writer import write_e57_sequence
 from kinreg.io.trajectory import write_trajectory_geoslam
 from kinreg.run import spill as slicing
@@ -490,20 +490,20 @@ def disk_full_while_spilling(env: Env) -> Case:
 
 
 def disk_full_while_writing_e57(env: Env) -> Case:
-    original = libe57.CompressedVectorWriter.write
+    # Small file buffers: the E57 file goes out in many writes, and the disk fills after the first.
+    env.monkeypatch.setattr(e57_writer, "FILE_BUFFER_BYTES", 4096)
+    original = direct_io._write_all
     calls: list[int] = []
 
-    def write_then_fail(writer: libe57.CompressedVectorWriter, *args: object) -> None:
-        calls.append(1)
-        if len(calls) == 2:  # the second scan: the first is already in the (temporary) file
-            # What libE57Format reports when a write() fails on a full disk.
-            raise libe57.E57Exception("write() failed (ErrorWriteFailed)\n  context: error='No space left on device'")
-        original(writer, *args)
+    def write_then_fail(fd: int, view: memoryview) -> None:
+        calls.append(len(view))
+        if len(calls) >= 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        original(fd, view)
 
-    env.monkeypatch.setattr(libe57.CompressedVectorWriter, "write", write_then_fail)
+    env.monkeypatch.setattr(direct_io, "_write_all", write_then_fail)
     return Case(env.slice_args(), env.seq,
-                r"^cannot write scan 'qs_00001': write\(\) failed \(ErrorWriteFailed\): No space left on device$",
-                env.seq)
+                r"^cannot (write scan 'qs_\d+'|finish E57 file): No space left on device$", env.seq)
 
 
 def disk_full_while_writing_text(env: Env) -> Case:
@@ -712,16 +712,16 @@ def test_undetected_laz_corruption_gives_a_complete_output_or_none(
 def test_interrupted_slice_leaves_no_file_that_looks_finished(
     tmp_path: Path, base_run: SyntheticRun, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    original = libe57.CompressedVectorWriter.write
+    original = e57_writer._write_packets
     calls: list[int] = []
 
-    def write_then_interrupt(writer: libe57.CompressedVectorWriter, *args: object) -> None:
+    def write_then_interrupt(*args: Any) -> None:
         calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        original(writer, *args)
+        original(*args)
 
-    monkeypatch.setattr(libe57.CompressedVectorWriter, "write", write_then_interrupt)
+    monkeypatch.setattr(e57_writer, "_write_packets", write_then_interrupt)
     out = tmp_path / "out" / "seq.e57"
     code, _, err = run_cli(["slice", "-t", base_run.trajectory_path, "-c", base_run.cloud_path, "-o", out], capsys)
     assert code == 130

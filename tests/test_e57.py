@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -9,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from e57fixtures import write_raw_e57_scan
-from pye57 import libe57
 
 from kinreg.errors import CloudError, OutputError
 from kinreg.geometry import Pose, rotvec_to_quat
+from kinreg.io import direct_io
 from kinreg.io import e57_writer as kinreg_e57_writer
 from kinreg.io.cloud import open_cloud
 from kinreg.io.e57 import E57CloudReader, iter_e57_scans, list_e57_scans, read_e57_scan
@@ -167,18 +168,17 @@ def test_chunked_equals_single_chunk(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert 10_001 in many_first
 
 
-def test_write_blocks_kept_from_scan_to_scan_change_no_byte(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The write blocks, kept from scan to scan and reused by scans of other sizes, give the bytes
-    of fresh blocks for every scan."""
-    monkeypatch.setattr(kinreg_e57_writer, "WRITE_BLOCK_POINTS", 4_000)
-    scans = [_scan(np.random.default_rng(4), k, n) for k, n in enumerate((10_001, 2_345, 7_000))]
-    (tmp_path / "kept").mkdir()
-    write_e57_sequence(tmp_path / "kept" / "sequence.e57", scans)
-    monkeypatch.setattr(kinreg_e57_writer.E57SequenceWriter, "_block",
-                        lambda self, name, dtype, capacity: np.full(capacity, np.nan, dtype))
-    (tmp_path / "fresh").mkdir()
-    write_e57_sequence(tmp_path / "fresh" / "sequence.e57", scans)
-    assert (tmp_path / "kept" / "sequence.e57").read_bytes() == (tmp_path / "fresh" / "sequence.e57").read_bytes()
+def test_block_and_buffer_sizes_change_no_byte(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The write blocks and paging buffers, kept from block to block and from scan to scan (reused by
+    scans of other sizes), and the file buffer's size give the same bytes."""
+    scans = [_scan(np.random.default_rng(4), k, n) for k, n in enumerate((10_001, 2_345, 0, 7_000))]
+    (tmp_path / "one").mkdir()
+    write_e57_sequence(tmp_path / "one" / "sequence.e57", scans)
+    monkeypatch.setattr(kinreg_e57_writer, "WRITE_BLOCK_POINTS", 1)  # one packet a block
+    monkeypatch.setattr(kinreg_e57_writer, "FILE_BUFFER_BYTES", 3 * 4096)
+    (tmp_path / "many").mkdir()
+    write_e57_sequence(tmp_path / "many" / "sequence.e57", scans)
+    assert (tmp_path / "one" / "sequence.e57").read_bytes() == (tmp_path / "many" / "sequence.e57").read_bytes()
 
 
 # --------------------------------------------------------------------------- independent readers
@@ -329,22 +329,27 @@ def test_writer_leaves_nothing_on_failure(tmp_path: Path, scans: list[Scan]) -> 
     assert list(tmp_path.iterdir()) == []
 
 
-def test_writer_failure_inside_libe57_leaves_nothing(
-    tmp_path: Path, scans: list[Scan], monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("failing_call", [1, 5, 22])  # of 22 writes
+def test_writer_failed_write_leaves_nothing(
+    tmp_path: Path, scans: list[Scan], monkeypatch: pytest.MonkeyPatch, failing_call: int
 ) -> None:
-    monkeypatch.setattr(kinreg_e57_writer, "WRITE_BLOCK_POINTS", 500)
-    original = libe57.CompressedVectorWriter.write
+    """A write that fails (here: the disk is full) at the start, mid-scan or at the end becomes an
+    OutputError naming the file, and the temporary file is removed."""
+    monkeypatch.setattr(kinreg_e57_writer, "FILE_BUFFER_BYTES", 4096)
+    original = direct_io._write_all
     calls = []
 
-    def write_then_fail(writer: libe57.CompressedVectorWriter, *args: object) -> None:
-        calls.append(args)
-        if len(calls) == 5:  # mid-scan: scan 0 takes three blocks of 500, this is scan 1's second
-            raise libe57.E57Exception("write() failed (ErrorWriteFailed)")
-        original(writer, *args)
+    def write_then_fail(fd: int, view: memoryview) -> None:
+        calls.append(len(view))
+        if len(calls) == failing_call:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        original(fd, view)
 
-    monkeypatch.setattr(libe57.CompressedVectorWriter, "write", write_then_fail)
-    with pytest.raises(OutputError, match=r"cannot write scan 'qs_00001': write\(\) failed"):
+    monkeypatch.setattr(direct_io, "_write_all", write_then_fail)
+    with pytest.raises(OutputError, match="No space left on device") as info:
         write_e57_sequence(tmp_path / "seq.e57", scans)
+    assert str(info.value).startswith(str(tmp_path / "seq.e57"))
+    assert len(calls) >= failing_call
     assert list(tmp_path.iterdir()) == []
 
 

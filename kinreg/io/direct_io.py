@@ -55,6 +55,7 @@ class DirectWriter:
     def __init__(self, path: str | Path, buffer_bytes: int = 64 << 20) -> None:
         self.name = str(path)
         self.size = 0  # bytes written so far
+        self._first = bytearray()  # the file's first ALIGN bytes, for close(head=...)
         capacity = _round_up(max(buffer_bytes, ALIGN))
         self._fd = _open(Path(path), os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
         self._buffers = [mmap.mmap(-1, capacity) for _ in range(2)]
@@ -64,6 +65,8 @@ class DirectWriter:
 
     def write(self, data: bytes | bytearray | memoryview) -> None:
         view = memoryview(data).cast("B")
+        if self.size < ALIGN:
+            self._first += view[:ALIGN - self.size]
         while len(view):
             buffer = self._buffers[self._current]
             k = min(len(view), len(buffer) - self._fill)
@@ -86,17 +89,30 @@ class DirectWriter:
             pending, self._pending = self._pending, None
             pending.result()
 
-    def close(self) -> None:
-        """Write what is left and close the file (its length: every byte written). Safe to call
-        twice."""
+    def close(self, head: bytes | bytearray | memoryview = b"") -> None:
+        """Write what is left and close the file (its length: every byte written). ``head``, at
+        most :data:`ALIGN` bytes, then replaces the file's first bytes (a header known only at the
+        end): the first block is written once more. Safe to call twice."""
         if self._fd < 0:
             return
         try:
+            if len(head) > min(ALIGN, self.size):
+                raise ValueError(f"head of {len(head)} bytes; the file's first block has {min(ALIGN, self.size)}")
             if self._fill:
                 tail = self._fill
                 self._buffers[self._current][tail:_round_up(tail)] = bytes(_round_up(tail) - tail)
                 self._hand_over(_round_up(tail))
             self._wait()
+            if len(head):
+                first = self._first
+                first[:len(head)] = head
+                block = mmap.mmap(-1, ALIGN)  # aligned, zero padded
+                block[:len(first)] = first
+                with memoryview(block) as view:
+                    done = 0
+                    while done < ALIGN:
+                        done += os.pwrite(self._fd, view[done:], done)
+                block.close()
             os.ftruncate(self._fd, self.size)  # the last block's padding
         finally:
             self._abort()
