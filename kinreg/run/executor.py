@@ -201,6 +201,10 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
     pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context(), initializer=start_worker,
                                initargs=(os.getpid(),))
     try:
+        # The workers start with the first task: the forkserver imports the tasks' module (numpy,
+        # scipy, kinreg), about 0.8 s. A task that does nothing starts them now, while the caller
+        # reads and slices the cloud, not when the first planes are wanted.
+        pool.submit(os.getpid)
         yield ExecutorContext(pool, n, "processes")
     except BaseException:
         _stop_now(pool)  # the caller gives up: no waiting for the tasks that are running
