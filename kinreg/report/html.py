@@ -53,7 +53,7 @@ h2{font-size:1.15em;margin:1.4em 0 .5em;border-bottom:1px solid #ddd;padding-bot
 .verdict.pass{background:#e8f5e9;border-color:#2e7d32}
 .verdict.warn{background:#fff8e1;border-color:#f9a825}
 .verdict.fail{background:#ffebee;border-color:#c62828}
-.cards{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(420px,100%),1fr));gap:16px;align-items:start}
+.cards{display:grid;grid-template-columns:repeat(auto-fit,minmax(min(540px,100%),1fr));gap:16px;align-items:start}
 .card h3{margin:.1em 0 .4em;font-size:1.05em}
 .card td:first-child,.figures td{white-space:nowrap}
 .inputs td+td{word-break:break-all}
