@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from kinreg.io import direct_io
-from kinreg.io.direct_io import ALIGN, DirectAppender, DirectWriter, read_pieces, read_whole
+from kinreg.io.direct_io import ALIGN, DirectWriter, read_pieces
 
 
 @pytest.mark.parametrize("direct", [True, False], ids=["O_DIRECT", "buffered"])
@@ -88,23 +88,3 @@ def test_a_file_system_that_refuses_an_aligned_direct_transfer_gets_a_buffered_o
     assert b"".join(bytes(p) for p in read_pieces(path, 1000)) == data
     if hasattr(os, "O_DIRECT"):
         assert refused == ["write", "preadv"]  # each refused once, then buffered
-
-
-@pytest.mark.parametrize("direct", [True, False], ids=["O_DIRECT", "buffered"])
-def test_appending_across_reopenings_gives_every_byte_in_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                                direct: bool) -> None:
-    if not direct:
-        monkeypatch.delattr(os, "O_DIRECT", raising=False)
-    rng = np.random.default_rng(5)
-    path = tmp_path / "unit.bin"
-    expected = b""
-    for size in (0, 1, ALIGN - 1, 3, 2 * ALIGN + 5, 7 * ALIGN, 10_000):  # closed and opened again each time
-        data = rng.integers(0, 256, size, dtype=np.uint8).tobytes()
-        appender = DirectAppender(path, buffer_bytes=2 * ALIGN)
-        for a in range(0, size, 3_001):
-            appender.write(data[a:a + 3_001])
-        appender.close()
-        appender.close()  # twice: nothing more
-        expected += data
-        assert path.stat().st_size == len(expected)
-        assert bytes(read_whole(path)) == expected

@@ -19,10 +19,9 @@ from __future__ import annotations
 import errno
 import mmap
 import os
-from collections.abc import Generator
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any
 
 # Offsets and lengths of O_DIRECT I/O in multiples of this (the page size, a multiple of every
 # disk's logical block size kinreg meets).
@@ -134,79 +133,6 @@ class DirectWriter:
             self._abort()
 
 
-class DirectAppender:
-    """Appends to ``path`` (created where missing) past the page cache, in the caller's thread:
-    the bytes gather in an aligned buffer of ``buffer_bytes`` and go out a full buffer at a time;
-    :meth:`close` writes the rest (the last block padded) and cuts the file to its length. Opened
-    again, it reads the file's last partial block back first and appends where the file ended."""
-
-    def __init__(self, path: str | Path, buffer_bytes: int = 1 << 20) -> None:
-        self._fd = _open(Path(path), os.O_RDWR | os.O_CREAT)
-        try:
-            self._buffer = mmap.mmap(-1, _round_up(max(buffer_bytes, ALIGN)))
-            size = os.fstat(self._fd).st_size
-            self._flushed, self._fill = size - size % ALIGN, size % ALIGN  # whole blocks on disk; the rest here
-            if self._fill:
-                _transfer(os.preadv, self._fd, memoryview(self._buffer)[:ALIGN], self._flushed, self._fill)
-        except BaseException:
-            os.close(self._fd)
-            raise
-
-    def write(self, data: bytes | bytearray | memoryview) -> None:
-        view = memoryview(data).cast("B")
-        while len(view):
-            k = min(len(view), len(self._buffer) - self._fill)
-            self._buffer[self._fill:self._fill + k] = view[:k]
-            self._fill += k
-            view = view[k:]
-            if self._fill == len(self._buffer):
-                _transfer(os.pwritev, self._fd, memoryview(self._buffer), self._flushed)
-                self._flushed, self._fill = self._flushed + len(self._buffer), 0
-
-    def close(self) -> None:
-        """Write what is left and close the file. Safe to call twice."""
-        if self._fd < 0:
-            return
-        try:
-            if self._fill:
-                end = _round_up(self._fill)
-                self._buffer[self._fill:end] = bytes(end - self._fill)
-                _transfer(os.pwritev, self._fd, memoryview(self._buffer)[:end], self._flushed)
-            os.ftruncate(self._fd, self._flushed + self._fill)
-        finally:
-            os.close(self._fd)
-            self._fd = -1
-
-
-def _transfer(call: Any, fd: int, view: memoryview, offset: int, at_least: int | None = None) -> None:
-    """``os.pwritev`` or ``os.preadv`` of all of ``view`` at ``offset`` (a read: at least
-    ``at_least`` bytes, the file may end before the block does); buffered where the file system
-    refuses the aligned transfer."""
-    done, need = 0, len(view) if at_least is None else at_least
-    while done < need:
-        try:
-            n = call(fd, [view[done:]], offset + done)
-        except OSError as e:
-            if e.errno != errno.EINVAL or not _without_direct(fd):
-                raise
-            continue
-        if n == 0:
-            raise OSError(errno.EIO, f"the file ends after {offset + done:,} bytes")
-        done += n
-
-
-def read_whole(path: str | Path) -> memoryview:
-    """All of the file, past the page cache, in an aligned buffer of its own."""
-    size = os.stat(path).st_size
-    if not size:
-        return memoryview(b"")
-    pieces = read_pieces(path, size, n_buffers=1)
-    try:
-        return next(pieces)
-    finally:
-        pieces.close()  # closes the file
-
-
 def _without_direct(fd: int) -> bool:
     """Turn ``O_DIRECT`` off on ``fd``; whether it was on (a file system may take the flag at open
     and refuse an aligned transfer all the same, with ``EINVAL``)."""
@@ -229,15 +155,15 @@ def _write_all(fd: int, view: memoryview) -> None:
                 raise
 
 
-def read_pieces(path: str | Path, piece_bytes: int, n_buffers: int = 3) -> Generator[memoryview, None, None]:
+def read_pieces(path: str | Path, piece_bytes: int, n_buffers: int = 3) -> Iterator[memoryview]:
     """The file in consecutive pieces of ``piece_bytes`` (the last one shorter), each a view
     into one of ``n_buffers`` aligned buffers taken in turn: a piece stays valid until
     ``n_buffers - 1`` more pieces have been taken, and may be changed in place."""
     size = os.stat(path).st_size
     fd = _open(Path(path), os.O_RDONLY)
     try:
-        count = min(n_buffers, 1 + size // piece_bytes)  # no more buffers than pieces
-        buffers = [mmap.mmap(-1, _round_up(piece_bytes) + ALIGN) for _ in range(count)]
+        n = min(n_buffers, 1 + size // piece_bytes)  # no more buffers than pieces
+        buffers = [mmap.mmap(-1, _round_up(piece_bytes) + ALIGN) for _ in range(n)]
         for k, start in enumerate(range(0, size, piece_bytes)):
             length = min(piece_bytes, size - start)
             first = start - start % ALIGN

@@ -30,6 +30,7 @@ from collections import OrderedDict
 from collections.abc import Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -38,7 +39,7 @@ from kinreg.errors import ConfigError, InputError, OutputError
 from kinreg.estimate.slicing import choose_windows, unit_edges
 from kinreg.geometry import FloatArray
 from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudReader, RawChunk
-from kinreg.io.direct_io import DirectAppender, DirectWriter, read_whole
+from kinreg.io.direct_io import DirectWriter
 from kinreg.progress import NullProgress, Progress
 from kinreg.run.codecs import windows_from_arrays, windows_to_arrays
 from kinreg.types import CloudChunk, Scan, ScanKind, ScanWindow, SkippedWindow, SlicingSummary, Trajectory
@@ -53,10 +54,6 @@ SPILL_RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("t", "<f8"),
 
 # Open spill files kept at once; a time-sorted cloud touches one or two per chunk.
 _MAX_OPEN_FILES = 64
-# Each open spill file gathers its records in a buffer of this size, written past the page cache
-# (kinreg.io.direct_io): on this project's machine the kernel's copy of a buffered spill into
-# the page cache was 1.7 of the slicing's 12.4 s of CPU at 20 M points.
-_UNIT_BUFFER_BYTES = 2 << 20
 
 # Records are assembled in two reused buffers of up to this many points (50 MB each), from
 # blocks whose float64 temporaries (256 kB) stay in the per-core cache. Fresh arrays of whole
@@ -86,7 +83,7 @@ class _SpillWriter:
         self.folder = folder
         self.origins = origins  # (n_units, 3) object-frame origin of each unit's offsets
         self.counts = np.zeros(len(origins), dtype=np.int64)
-        self._open: OrderedDict[int, DirectAppender] = OrderedDict()  # used by the writer thread only
+        self._open: OrderedDict[int, BinaryIO] = OrderedDict()  # used by the writer thread only
         self._writer: ThreadPoolExecutor | None = None
 
     def path(self, unit: int) -> Path:
@@ -107,7 +104,7 @@ class _SpillWriter:
             if len(self._open) >= _MAX_OPEN_FILES:
                 _, oldest = self._open.popitem(last=False)
                 oldest.close()
-            f = DirectAppender(self.path(unit), _UNIT_BUFFER_BYTES)  # kept open across chunks, closed in close()
+            f = open(self.path(unit), "ab")  # noqa: SIM115  (kept open across chunks, closed in close())
         self._open[unit] = f
         f.write(records.view(np.uint8).data)
 
@@ -169,7 +166,7 @@ class QuasiStaticSequence:
         R = np.ascontiguousarray(w.T_obj_scan.rotation_matrix)
         start = 0
         for u in units:
-            rec = np.frombuffer(read_whole(self._store.path(u)), dtype=SPILL_RECORD)
+            rec = np.fromfile(self._store.path(u), dtype=SPILL_RECORD)
             shift = self._store.origins[u] - w.T_obj_scan.t_xyz
             for k in range(0, len(rec), _BLOCK_POINTS):
                 part = rec[k:k + _BLOCK_POINTS]
