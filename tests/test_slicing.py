@@ -49,6 +49,23 @@ def test_slicing_round_trip_reproduces_every_point(tmp_path, sort):
         np.testing.assert_array_equal(w.T_obj_scan.t_xyz, run.trajectory.poses.t_xyz[k])
 
 
+def test_spill_files_closed_and_opened_again_keep_every_point(tmp_path, monkeypatch):
+    """An unsorted cloud with one spill file open at a time: each is closed and appended to again
+    many times; the same points in the same order as with every file open."""
+    from kinreg.run import spill
+
+    run = write_synthetic_run(tmp_path / "run", n_points=40_000, sort=False)
+    config = SlicingConfig(window_s=6.0, min_points=10)
+    with slice_run(run, config, chunk_points=3_000, tmp_path=tmp_path) as seq:
+        expected = [seq.read_scan(i) for i in range(len(seq))]
+    monkeypatch.setattr(spill, "_MAX_OPEN_FILES", 1)
+    with slice_run(run, config, chunk_points=3_000, tmp_path=tmp_path) as seq:
+        for i, scan in enumerate(expected):
+            again = seq.read_scan(i)
+            assert np.array_equal(again.points_xyz, scan.points_xyz) and np.array_equal(again.stamps_s, scan.stamps_s)
+            assert np.array_equal(again.intensity, scan.intensity)
+
+
 def test_points_are_in_the_scan_frame(tmp_path):
     run = write_synthetic_run(tmp_path / "run", n_points=20_000)
     with slice_run(run, SlicingConfig(window_s=3.0, min_points=10)) as seq:

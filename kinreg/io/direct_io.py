@@ -162,8 +162,8 @@ def read_pieces(path: str | Path, piece_bytes: int, n_buffers: int = 3) -> Itera
     size = os.stat(path).st_size
     fd = _open(Path(path), os.O_RDONLY)
     try:
-        n = min(n_buffers, 1 + size // piece_bytes)  # no more buffers than pieces
-        buffers = [mmap.mmap(-1, _round_up(piece_bytes) + ALIGN) for _ in range(n)]
+        count = min(n_buffers, 1 + size // piece_bytes)  # no more buffers than pieces
+        buffers = [mmap.mmap(-1, _round_up(piece_bytes) + ALIGN) for _ in range(count)]
         for k, start in enumerate(range(0, size, piece_bytes)):
             length = min(piece_bytes, size - start)
             first = start - start % ALIGN
