@@ -77,6 +77,11 @@ class DirectWriter:
             if self._fill == len(buffer):
                 self._hand_over(len(buffer))
 
+    @property
+    def head(self) -> bytes:
+        """The file's first bytes written so far (up to :data:`ALIGN`)."""
+        return bytes(self._first)
+
     def _hand_over(self, length: int) -> None:
         """Write the current buffer's first ``length`` bytes (whole blocks) in the background and
         switch to the other buffer once its own write is done."""

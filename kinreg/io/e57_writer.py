@@ -158,7 +158,6 @@ class _PagedFile:
         self._logical: NDArray[np.uint8] = np.empty(0, np.uint8)
         self._rest = 0  # committed bytes not yet paged, at the start of _logical
         self._pages: NDArray[np.uint8] = np.empty(0, np.uint8)
-        self._page0 = b""  # the first page's logical bytes, to write again with the header
 
     def reserve(self, n: int) -> NDArray[np.uint8]:
         """Room for the next ``n`` logical bytes; valid until :meth:`commit`."""
@@ -198,8 +197,6 @@ class _PagedFile:
         data = logical.data
         crcs = np.array([crc32c(data[i:i + PAGE_DATA]) for i in range(0, k * PAGE_DATA, PAGE_DATA)], ">u4")
         pages[:, PAGE_DATA:] = crcs.view(np.uint8).reshape(k, 4)
-        if self._file.size == 0:
-            self._page0 = logical[:PAGE_DATA].tobytes()
         self._file.write(pages.data)
 
     @property
@@ -209,7 +206,7 @@ class _PagedFile:
     def close(self, header: bytes) -> None:
         """Write the last page (padded) and ``header`` into the first page; close the file."""
         self.commit(0, pad=True)
-        page0 = bytearray(self._page0)
+        page0 = bytearray(self._file.head[:PAGE_DATA])  # the first page's logical bytes
         page0[:len(header)] = header
         page0 += crc32c(bytes(page0)).to_bytes(4, "big")
         self._file.close(head=page0)

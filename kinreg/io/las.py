@@ -190,15 +190,10 @@ class LasCloudReader:
 
     def _copied_arrays(self, chunk_points: int) -> Iterator[np.ndarray]:
         """The point records of the decoded copy ``decoded``, ``chunk_points`` at a time (each
-        valid until the next is taken, and writable); a copy of another size is an error naming it."""
+        valid until the next is taken, and writable)."""
         assert self.decoded is not None
-        dtype = self._reader.header.point_format.dtype()
-        size = self.decoded.stat().st_size
-        if size != self.info.n_points * dtype.itemsize:
-            raise CloudError(f"the decoded copy of {self.path.name} holds {size:,} bytes, not {self.info.n_points:,} "
-                             f"points of {dtype.itemsize} bytes", self.decoded)
-        for piece in read_pieces(self.decoded, chunk_points * dtype.itemsize, n_buffers=2):
-            yield np.frombuffer(piece, dtype=dtype)
+        return read_records(self.decoded, self._reader.header.point_format.dtype(), self.info.n_points,
+                            chunk_points, n_buffers=2)
 
     def sample_times(self, n_samples: int = 16, points_per_sample: int = 1000) -> np.ndarray:
         """Point times (shifted by the time filter's offset, unfiltered) of ``n_samples`` runs of
@@ -229,6 +224,21 @@ class LasCloudReader:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def read_records(path: Path, dtype: np.dtype, n_points: int, chunk_points: int,
+                 n_buffers: int) -> Iterator[np.ndarray]:
+    """The ``n_points`` point records (``dtype``: the point format's) of a decoded copy
+    (:meth:`LasCloudReader.iter_raw_chunks`' ``copy_to``), ``chunk_points`` at a time, read past
+    the page cache into ``n_buffers`` buffers taken in turn (:func:`~kinreg.io.direct_io.read_pieces`:
+    a chunk stays valid until ``n_buffers - 1`` more are taken). A copy of another size is a
+    :class:`CloudError` naming it."""
+    size = path.stat().st_size
+    if size != n_points * dtype.itemsize:
+        raise CloudError(f"the decoded copy holds {size:,} bytes, not {n_points:,} points of {dtype.itemsize} bytes",
+                         path)
+    for piece in read_pieces(path, chunk_points * dtype.itemsize, n_buffers=n_buffers):
+        yield np.frombuffer(piece, dtype=dtype)
 
 
 def _describe(e: BaseException) -> str:

@@ -13,7 +13,6 @@ from kinreg.errors import CloudError
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import FloatArray, Pose
 from kinreg.io.atomic import atomic_path
-from kinreg.io.direct_io import read_pieces
 from kinreg.progress import NullProgress, Progress
 
 
@@ -206,20 +205,16 @@ def _write_points(writer: Any, points: Any, extremes: list[tuple[float, float]])
 def read_record_chunks(path: Path, point_format: Any, scales: Any, offsets: Any, n_points: int,
                        chunk_points: int) -> Iterator[Any]:
     """The point records slicing copied to ``path`` (``n_points`` of the laspy ``point_format``,
-    :meth:`~kinreg.io.las.LasCloudReader.iter_raw_chunks`), ``chunk_points`` at a time, as laspy
-    records with the file's ``scales`` and ``offsets``: what laspy's chunk iterator gives, without
-    decoding. A chunk lives in one of three buffers taken in turn (:func:`read_pieces`): valid
-    while the next is read and the one before is encoded, as :func:`write_corrected_las` uses
-    them. Raises :class:`CloudError` when the copy holds another number of points."""
+    :func:`~kinreg.io.las.read_records`), ``chunk_points`` at a time, as laspy records with the
+    file's ``scales`` and ``offsets``: what laspy's chunk iterator gives, without decoding. A chunk
+    lives in one of three buffers taken in turn: valid while the next is read and the one before
+    is encoded, as :func:`write_corrected_las` uses them."""
     import laspy
 
-    dtype = point_format.dtype()
-    size = path.stat().st_size
-    if size != n_points * dtype.itemsize:
-        raise CloudError(f"the decoded copy holds {size:,} bytes, not {n_points:,} points of "
-                         f"{dtype.itemsize} bytes", path)
-    for piece in read_pieces(path, chunk_points * dtype.itemsize, n_buffers=3):
-        yield laspy.ScaleAwarePointRecord(np.frombuffer(piece, dtype=dtype), point_format, scales, offsets)
+    from kinreg.io.las import read_records
+
+    for array in read_records(path, point_format.dtype(), n_points, chunk_points, n_buffers=3):
+        yield laspy.ScaleAwarePointRecord(array, point_format, scales, offsets)
 
 
 def _raw_xyz(points: Any) -> tuple[Any, Any, Any]:
