@@ -174,3 +174,26 @@ def test_the_forkserver_preload_does_not_load_numpy_before_it_limits_the_threads
     code = "import sys, kinreg.run.executor; print('numpy' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_workers_start_in_the_background_and_outlive_the_thread_that_started_them():
+    # make_executor starts the workers without waiting for them (a thread submits a task that does
+    # nothing). The kernel ties the forkserver's life to the thread that started it: started from
+    # that short-lived thread it would be terminated when the thread ends, and every worker with it.
+    # A fresh process, so that no forkserver of an earlier test is running already.
+    import subprocess
+    import sys
+
+    code = (
+        "import threading, time\n"
+        "from kinreg.run.executor import make_executor, parallel_map\n"
+        "with make_executor(workers=2) as ctx:\n"
+        "    starters = [t for t in threading.enumerate() if t.name == 'kinreg-start-workers']\n"
+        "    print(len(starters))\n"
+        "    for t in starters: t.join()\n"
+        "    time.sleep(0.5)\n"
+        "    print(parallel_map(abs, [-1, -2, -3, -4], ctx))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[:2] == ["1", "[1, 2, 3, 4]"]

@@ -42,9 +42,9 @@ ends. A worker also ignores SIGINT: Ctrl-C reaches the whole process group, and 
 calling process that decides; when the ``with make_executor(...)`` block is left by an
 exception (Ctrl-C, a failed task), the workers are terminated at once instead of finishing
 their current tasks. Elsewhere (macOS) workers of a killed caller may outlive it. The kernel
-ties the forkserver to the *thread* that started it (the one that first submitted work): a
-program that runs kinreg in a thread that then ends loses that forkserver, and multiprocessing
-starts a new one for the next pool.
+ties the forkserver to the *thread* that started it (the one that first opened a pool; not the
+thread that starts the workers in the background): a program that runs kinreg in a thread that
+then ends loses that forkserver, and multiprocessing starts a new one for the next pool.
 """
 
 from __future__ import annotations
@@ -55,9 +55,10 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -198,19 +199,40 @@ def make_executor(workers: int | None = None, scheduler: str | None = None,
     if n == 1:
         yield in_process()
         return
-    pool = ProcessPoolExecutor(max_workers=n, mp_context=_mp_context(), initializer=start_worker,
+    context = _mp_context()
+    pool = ProcessPoolExecutor(max_workers=n, mp_context=context, initializer=start_worker,
                                initargs=(os.getpid(),))
+    starter = _start_workers(pool, context)
     try:
-        # The workers start with the first task: the forkserver imports the tasks' module (numpy,
-        # scipy, kinreg), about 0.8 s. A task that does nothing starts them now, while the caller
-        # reads and slices the cloud, not when the first planes are wanted.
-        pool.submit(os.getpid)
         yield ExecutorContext(pool, n, "processes")
     except BaseException:
+        starter.join()
         _stop_now(pool)  # the caller gives up: no waiting for the tasks that are running
         raise
     finally:
+        starter.join()
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _start_workers(pool: ProcessPoolExecutor, context: multiprocessing.context.BaseContext) -> threading.Thread:
+    """Start ``pool``'s workers now, while the caller reads and slices the cloud, not when the
+    first planes are wanted, and without waiting for them: the forkserver imports the tasks'
+    module (numpy, scipy, kinreg; about a CPU second) before it forks the first worker, and the
+    first task's ``submit`` waits for that. The forkserver itself is started from this (the
+    calling) thread, which the kernel ties its life to (see the module's docstring); a thread
+    then submits a task that does nothing, which forks the workers from it."""
+    if context.get_start_method() == "forkserver":
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()  # starts the server process, does not wait for its imports
+    starter = threading.Thread(target=_submit_nothing, args=(pool,), name="kinreg-start-workers", daemon=True)
+    starter.start()
+    return starter
+
+
+def _submit_nothing(pool: ProcessPoolExecutor) -> None:
+    with suppress(RuntimeError):  # a pool the caller has shut down already
+        pool.submit(os.getpid)
 
 
 def _stop_now(pool: ProcessPoolExecutor) -> None:
