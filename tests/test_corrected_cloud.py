@@ -34,13 +34,33 @@ def test_chunked_overlapped_writer_gives_every_point_its_correction(tmp_path, su
     xyz_stored = np.column_stack([stored.x, stored.y, stored.z])
 
     target = tmp_path / f"out{suffix}"
-    assert write_corrected_las(source, target, correction, chunk_points=3_000) == n  # 9 chunks
+    observer = CopyingObserver()
+    assert write_corrected_las(source, target, correction, chunk_points=3_000, observer=observer) == n  # 9 chunks
     out = laspy.read(target)
     expected = correction.apply_to_points(xyz_stored, np.asarray(stored.gps_time))
     # the scale's rounding, and the grid of the correction placed per chunk (within a micrometre)
     assert np.abs(np.column_stack([out.x, out.y, out.z]) - expected).max() <= 0.5e-4 + 1e-6
     assert np.array_equal(out.gps_time, stored.gps_time)  # same order
     assert np.array_equal(out.intensity, stored.intensity)
+    # the observer (the report's views) saw every chunk once, in order, before and after
+    assert [len(c) for c in observer.stamps] == [3_000] * 8 + [1_000]
+    assert np.array_equal(np.concatenate(observer.stamps), stored.gps_time)
+    assert np.array_equal(np.concatenate(observer.before), xyz_stored)
+    assert np.abs(np.concatenate(observer.after) - expected).max() <= 1e-6
+
+
+class CopyingObserver:
+    """Keeps a copy of every chunk it is given."""
+
+    def __init__(self) -> None:
+        self.before: list[np.ndarray] = []
+        self.after: list[np.ndarray] = []
+        self.stamps: list[np.ndarray] = []
+
+    def add(self, xyz_before: np.ndarray, xyz_after: np.ndarray, stamps_s: np.ndarray) -> None:
+        self.before.append(np.array(xyz_before))
+        self.after.append(np.array(xyz_after))
+        self.stamps.append(np.array(stamps_s))
 
 
 def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
