@@ -111,19 +111,41 @@ def read_stations(path: Path) -> dict[str, np.ndarray]:
     return cols
 
 
-def point_to_plane_rms(run, xyz_iter) -> float:
-    """RMS distance of points to their true plane (patch ids from the simulator, same order)."""
+def cloud_fit(run, xyz_iter) -> tuple[float, float]:
+    """Two figures of a cloud (points with their simulated patch ids, same order): the RMS distance
+    of the points to their true plane, and the planes' thickness: the RMS distance of each
+    physical plane's points to the plane fitted to them (the smallest eigenvalue of their scatter).
+    The first also counts where the whole network sits (its datum's error, a tilt about the datum
+    station); the second only how well the passes over each plane agree, which a rigid motion of
+    the whole cloud leaves unchanged: the crispness issue #14 asks for."""
     planes = run.scene.patches
     normals = np.array([p.normal for p in planes])
     d = np.array([p.d for p in planes])
+    plane_of = run.scene.plane_of_patch()
+    n_planes = int(plane_of.max()) + 1
+    moments = np.zeros((10, n_planes))  # count, sums of x, y, z, of xx, xy, xz, yy, yz, zz
     sq, n = 0.0, 0
     origin = run.origin
     for block, xyz in xyz_iter:
         pid = block.patch_id
-        r = np.einsum("ij,ij->i", xyz - origin, normals[pid]) - d[pid]
+        local = xyz - origin
+        r = np.einsum("ij,ij->i", local, normals[pid]) - d[pid]
         sq += float(np.sum(r**2))
         n += len(r)
-    return float(np.sqrt(sq / n))
+        plane = plane_of[pid]
+        x, y, z = local[:, 0], local[:, 1], local[:, 2]
+        for k, w in enumerate((None, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)):
+            moments[k] += np.bincount(plane, weights=w, minlength=n_planes)
+    count = moments[0]
+    used = count >= 10
+    sq_fit = 0.0
+    for k in np.flatnonzero(used):
+        c = count[k]
+        mean = moments[1:4, k] / c
+        xx, xy, xz, yy, yz, zz = moments[4:, k] / c
+        scatter = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]) - np.outer(mean, mean)
+        sq_fit += c * max(float(np.linalg.eigvalsh(scatter)[0]), 0.0)
+    return float(np.sqrt(sq / n)), float(np.sqrt(sq_fit / count[used].sum()))
 
 
 def station_errors(stations_csv: Path, truth, drifted) -> dict:
@@ -163,6 +185,7 @@ def station_errors(stations_csv: Path, truth, drifted) -> dict:
     z_absolute = err_datum[free] / sig[free]
     return {
         "stations": len(adj),
+        "rigid_fit": (R, t),  # adjusted stations onto the truth (not written to the JSON)
         "position_error_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_fit**2))), "max": float(err_fit.max())},
         "position_error_input_after_rigid_fit_mm": {"rms": float(np.sqrt(np.mean(err_initial_fit**2))),
                                                     "max": float(err_initial_fit.max())},
@@ -208,14 +231,17 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
     stations = station_errors(workdir / "out" / "stations.csv", truth, read_trajectory(data / "run_trajectory.txt"))
 
     # corrected cloud vs true planes, next to the true-trajectory cloud and the drifted input
-    def corrected():
-        with laspy.open(workdir / "out" / "corrected.laz") as r:
-            chunks = r.chunk_iterator(10**9)
-            points = next(chunks)
-            xyz = np.column_stack([points.x, points.y, points.z])
+    with laspy.open(workdir / "out" / "corrected.laz") as r:
+        points = next(r.chunk_iterator(10**9))
+        corrected_xyz = np.column_stack([points.x, points.y, points.z])
+    R_fit, t_fit = stations.pop("rigid_fit")
+
+    def corrected(rigid: bool = False):
+        # rigid: moved by the stations' rigid fit onto the truth (their datum's error taken out)
         first = 0
         for block in run.iter_cloud_blocks():
-            yield block, xyz[first:first + len(block)]
+            xyz = corrected_xyz[first:first + len(block)]
+            yield block, (xyz @ R_fit.T + t_fit if rigid else xyz)
             first += len(block)
 
     def with_truth():
@@ -228,9 +254,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
             yield block, block.xyz_obj
 
     drift = json.loads((workdir / "out" / "report.json").read_text())["adjustment"]["drift_rates"]
-    rms_corrected = point_to_plane_rms(run, corrected())
-    rms_truth = point_to_plane_rms(run, with_truth())
-    rms_input = point_to_plane_rms(run, drifted())
+    (rms_corrected, thick_corrected), (rms_rigid, _), (rms_truth, thick_truth), (rms_input, thick_input) = (
+        cloud_fit(run, cloud) for cloud in (corrected(), corrected(rigid=True), with_truth(), drifted()))
     return {
         "scenario": name,
         "seed": cfg.seed,
@@ -243,7 +268,12 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         "drift_model": cfg.drift.model.value, "magnitude": magnitude,
         "cloud_point_to_plane_rms_mm": {"corrected": rms_corrected * 1000, "true_trajectory": rms_truth * 1000,
                                         "input": rms_input * 1000,
-                                        "corrected_over_truth": rms_corrected / rms_truth},
+                                        "corrected_over_truth": rms_corrected / rms_truth,
+                                        "corrected_after_rigid_fit": rms_rigid * 1000,
+                                        "corrected_after_rigid_fit_over_truth": rms_rigid / rms_truth},
+        "cloud_plane_thickness_mm": {"corrected": thick_corrected * 1000, "true_trajectory": thick_truth * 1000,
+                                     "input": thick_input * 1000,
+                                     "corrected_over_truth": thick_corrected / thick_truth},
         "gaps_mm": {"mean": summary.gaps_mean_mm, "max": summary.gaps_max_mm},
         "rejected_observations": summary.n_rejected,
         "process_wall_s": wall,
@@ -284,6 +314,9 @@ def pooled(results: list[dict]) -> dict:
                                                                     for r in results]),
         "cloud_corrected_over_truth_worst_run": max(r["cloud_point_to_plane_rms_mm"]["corrected_over_truth"]
                                                     for r in results),
+        "cloud_thickness_corrected_over_truth_worst_run": max(
+            (r["cloud_plane_thickness_mm"]["corrected_over_truth"] for r in results if "cloud_plane_thickness_mm" in r),
+            default=None),
         "position_error_after_rigid_fit_mm_rms_worst_run": max(r["position_error_after_rigid_fit_mm"]["rms"]
                                                                for r in results),
         "position_error_after_rigid_fit_mm_max_worst_run": max(r["position_error_after_rigid_fit_mm"]["max"]

@@ -54,6 +54,9 @@ def summary(cell: dict) -> dict:
         "error_over_sigma_pooled": np.sqrt(np.mean(ms, axis=0)).tolist(),
         "error_over_sigma_90": pooled_interval(ms),
         "cloud_worst": max(r["cloud_point_to_plane_rms_mm"]["corrected_over_truth"] for r in runs),
+        # plane thickness (rigid motion of the whole cloud left out); runs from before it: none
+        "thickness_worst": max((r["cloud_plane_thickness_mm"]["corrected_over_truth"] for r in runs
+                                if "cloud_plane_thickness_mm" in r), default=float("nan")),
     }
 
 
@@ -64,14 +67,14 @@ def main() -> None:
     args = parser.parse_args()
     table = {key: summary(cell) for key, cell in sorted(cells(args.inputs).items()) if cell["runs"]}
     print("| cell | runs (failed) | station RMS worst / median, max worst [mm] | runs > 2 mm RMS / > 6 mm max "
-          "| error/sigma x / y / z pooled | 90 % interval x / y / z | cloud worst |")
-    print("|---|---|---|---|---|---|---|")
+          "| error/sigma x / y / z pooled | 90 % interval x / y / z | cloud worst | thickness worst |")
+    print("|---|---|---|---|---|---|---|---|")
     for key, s in table.items():
         es = " / ".join(f"{v:.2f}" for v in s["error_over_sigma_pooled"])
         ci = " / ".join(f"{lo:.2f}-{hi:.2f}" for lo, hi in s["error_over_sigma_90"])
         print(f"| {key} | {len(s['seeds'])} ({len(s['failed_seeds'])}) | {s['rms_mm_worst']:.2f} / "
               f"{s['rms_mm_median']:.2f}, {s['max_mm_worst']:.2f} | {s['runs_over_rms_target']} / "
-              f"{s['runs_over_max_target']} | {es} | {ci} | {s['cloud_worst']:.3f} |")
+              f"{s['runs_over_max_target']} | {es} | {ci} | {s['cloud_worst']:.3f} | {s['thickness_worst']:.3f} |")
     if args.out is not None:
         args.out.write_text(json.dumps(table, indent=1) + "\n")
 
