@@ -117,7 +117,8 @@ def cloud_fit(run, xyz_iter) -> tuple[float, float]:
     physical plane's points to the plane fitted to them (the smallest eigenvalue of their scatter).
     The first also counts where the whole network sits (its datum's error, a tilt about the datum
     station); the second only how well the passes over each plane agree, which a rigid motion of
-    the whole cloud leaves unchanged: the crispness issue #14 asks for."""
+    the whole cloud leaves unchanged (and the linear part of a bend across one plane with it): the
+    crispness issue #14 asks for."""
     planes = run.scene.patches
     normals = np.array([p.normal for p in planes])
     d = np.array([p.d for p in planes])
