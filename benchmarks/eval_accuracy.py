@@ -254,7 +254,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         for block in run.iter_cloud_blocks():
             yield block, block.xyz_obj
 
-    drift = json.loads((workdir / "out" / "report.json").read_text())["adjustment"]["drift_rates"]
+    adjustment = json.loads((workdir / "out" / "report.json").read_text())["adjustment"]
+    drift = adjustment["drift_rates"]
     (rms_corrected, thick_corrected), (rms_rigid, _), (rms_truth, thick_truth), (rms_input, thick_input) = (
         cloud_fit(run, cloud) for cloud in (corrected(), corrected(rigid=True), with_truth(), drifted()))
     return {
@@ -264,6 +265,7 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         "links": summary.n_links,
         "sigma0": summary.sigma0,
         "drift_rates": drift,
+        "variance_components": adjustment.get("variance_components"),
         "global_test_passed": summary.global_test_passed,
         **{k: v for k, v in stations.items() if k != "stations"},
         "drift_model": cfg.drift.model.value, "magnitude": magnitude,
