@@ -231,7 +231,9 @@ def _start_workers(pool: ProcessPoolExecutor, context: multiprocessing.context.B
 
 
 def _submit_nothing(pool: ProcessPoolExecutor) -> None:
-    with suppress(RuntimeError):  # a pool the caller has shut down already
+    # A pool the caller has shut down already, or workers that cannot start (the caller's own
+    # first task then raises it, with one line and not a thread's traceback).
+    with suppress(Exception):
         pool.submit(os.getpid)
 
 
