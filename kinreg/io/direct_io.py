@@ -114,9 +114,7 @@ class DirectWriter:
                 block = mmap.mmap(-1, ALIGN)  # aligned, zero padded
                 block[:len(first)] = first
                 with memoryview(block) as view:
-                    done = 0
-                    while done < ALIGN:
-                        done += os.pwrite(self._fd, view[done:], done)
+                    _write_all(self._fd, view, offset=0)
                 block.close()
             os.ftruncate(self._fd, self.size)  # the last block's padding
         finally:
@@ -151,13 +149,19 @@ def _without_direct(fd: int) -> bool:
     return True
 
 
-def _write_all(fd: int, view: memoryview) -> None:
+def _write_all(fd: int, view: memoryview, offset: int | None = None) -> None:
+    """Write all of ``view`` at the file's position, or at ``offset``; a transfer the file system
+    refuses with ``O_DIRECT`` (``EINVAL``) is made again without it."""
     while len(view):
         try:
-            view = view[os.write(fd, view):]
+            n = os.write(fd, view) if offset is None else os.pwrite(fd, view, offset)
         except OSError as e:
             if e.errno != errno.EINVAL or not _without_direct(fd):
                 raise
+            continue
+        view = view[n:]
+        if offset is not None:
+            offset += n
 
 
 def read_pieces(path: str | Path, piece_bytes: int, n_buffers: int = 3) -> Iterator[memoryview]:

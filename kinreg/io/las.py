@@ -123,10 +123,8 @@ class LasCloudReader:
         self.times.restart(n_total)
         arrays = (self._decoded_arrays(chunk_points, every_field=copy_to is not None) if self.decoded is None
                   else self._copied_arrays(chunk_points))
-        for array in arrays:
+        for array in arrays:  # never empty: both sources end instead
             n = len(array)
-            if n == 0:
-                break
             if copy_to is not None:
                 copy_to.write(array.view(np.uint8).data)  # an OSError is the caller's (its disk)
             stamps = self.times.apply(array["gps_time"], self.path) if self._has_time else None
