@@ -614,13 +614,21 @@ def _stepped(poses: Pose, velocity: FloatArray, fixed: np.ndarray, dx: FloatArra
 # itself, lambda growing tenfold, up to _MAX_DAMPING (then no descent is left: a minimum).
 _FIRST_DAMPING = 1e-4
 _MAX_DAMPING = 1e8
+# Converged when the undamped step's predicted fall of the cost (the Newton decrement b^T N^-1 b, in
+# units of the weighted squares) is below this: the model's minimum is then within a thousandth of
+# a standard deviation of the unknowns (the step's length in the metric of their covariance, N),
+# whatever their units and however many. The approximate Jacobians (:func:`_pose_residuals`) can
+# leave the cost rising by a few 1e-7 along a step the model says gains 5e-10: without this test
+# the damped steps then crawled by 5e-9 m an iteration until the limit (issue #14: a GNSS/INS-like
+# run of the tilted head failed "no convergence after 50 iterations").
+_DECREMENT = 1e-6
 
 
 def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
     """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3) (the drift velocities are plain vectors)
     over the active observations ``a``. Converged when no unknown changes by more than
-    ``config.convergence`` or the cost falls by less than ``config.cost_tolerance`` of itself;
-    returns the state (poses, velocities), the iterations, the factor of the undamped normal matrix
+    ``config.convergence``, the cost falls by less than ``config.cost_tolerance`` of itself, or the
+    undamped step's predicted fall is below :data:`_DECREMENT`; returns the state (poses, velocities), the iterations, the factor of the undamped normal matrix
     at the solution (for the covariances) and whether it converged."""
     poses, velocity = start
     selection = normal.select(_columns(a, free_index), _unit_slots(a))
@@ -640,6 +648,8 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
             damped = lam > 0.0
             factor = normal.factorize(blocks, lam)
             dx = factor.solve(b).reshape(-1, 6)
+            if lam == 0.0:
+                close = float(b @ dx.reshape(-1)) < _DECREMENT
             trial = _stepped(poses, velocity, fixed, dx)
             trial_e, trial_J = _linearise(*trial, a, out=spare)
             spare = None
@@ -651,19 +661,19 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
             # damping it only shrinks it further (at 235 M points 78 of the block's 116
             # factorisations were such retries, and one more for the covariances). Stop here,
             # with the undamped factor of this state.
-            at_minimum = lam == 0.0 and bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
+            at_minimum = lam == 0.0 and (close or bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6)))
             lam = _FIRST_DAMPING if lam == 0.0 else 10.0 * lam
             if at_minimum or lam > _MAX_DAMPING:
                 break
         del blocks
         progress.advance(1)
         if at_minimum or lam > _MAX_DAMPING:  # no step lowers the cost: at a minimum if the gradient vanishes there
-            converged = bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
+            converged = close or bool(np.max(np.abs(dx)) < max(config.convergence, 1e-6))
             break
         (poses, velocity), fell = trial, cost - trial_cost
         spare = e, J
         e, J, cost = trial_e, trial_J, trial_cost
-        if np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
+        if close or np.max(np.abs(dx)) < config.convergence or fell <= config.cost_tolerance * cost:
             converged = True
             break
     if not converged:
