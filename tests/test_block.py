@@ -389,18 +389,25 @@ def _one_observation(kind, twist):
     return poses, rel, Z, active
 
 
-@pytest.mark.parametrize("kind", [ObservationKind.PLANES, ObservationKind.FRAME, ObservationKind.STATION])
+@pytest.mark.parametrize("kind", [ObservationKind.PLANES, ObservationKind.FRAME, ObservationKind.STATION,
+                                  ObservationKind.PLANE_FLOOR])
 def test_pose_residual_jacobians_hold_across_a_large_free_shift(kind):
-    # The residual (translation difference in Z's axes, rotation vector of Z^-1 rel) against finite
-    # differences, 7 m off along x and 1 mrad turned: a FRAME tie's and a station's Jacobians are
-    # exact; the others' are first order in the residual's rotation (1e-3 here), however large the
-    # shift (the SE(3) log's were off by half of it, 3.5).
+    # The residual (translation difference in Z's axes, rotation vector of Z^-1 rel; a scan plane's
+    # tilts and offset, kinreg.estimate.block._scan_plane_residuals) against finite differences,
+    # 7 m off along x and 1 mrad turned: every kind's Jacobians are exact, however large the shift
+    # (the SE(3) log's were off by half of it, 3.5; the identity for the second station's, taken
+    # before, by 1e-3 here, and its Gauss-Newton did not converge on held-out runs).
     from kinreg.estimate import block
 
     poses, rel, Z, active = _one_observation(kind, np.r_[-7.0, 0.02, -0.01, 4e-4, -6e-4, 7.5e-4])
     velocity = np.zeros((0, 6))
     e0, J = block._linearise(poses, velocity, active)
-    np.testing.assert_allclose(e0[0, :3], Z.rotation_matrix.T @ (rel.t_xyz - Z.t_xyz), atol=1e-12)
+    if kind is ObservationKind.PLANE_FLOOR:
+        n = Z.rotation_matrix.T @ rel.rotation_matrix[:, 2]
+        np.testing.assert_allclose(e0[0], [0, 0, n @ (Z.rotation_matrix.T @ (rel.t_xyz - Z.t_xyz)), -n[1], n[0], 0],
+                                   atol=1e-12)
+    else:
+        np.testing.assert_allclose(e0[0, :3], Z.rotation_matrix.T @ (rel.t_xyz - Z.t_xyz), atol=1e-12)
     for node in (0,) if kind is ObservationKind.STATION else (0, 1):
         numeric = np.zeros((6, 6))
         for axis in range(6):
@@ -409,8 +416,7 @@ def test_pose_residual_jacobians_hold_across_a_large_free_shift(kind):
             ahead, _ = block._linearise(poses.compose(Pose.exp(step)), velocity, active, jacobians=False)
             back, _ = block._linearise(poses.compose(Pose.exp(-step)), velocity, active, jacobians=False)
             numeric[:, axis] = (ahead[0] - back[0]) / 2e-6
-        exact = kind is not ObservationKind.PLANES
-        np.testing.assert_allclose(J[0, node], numeric, atol=1e-7 if exact else 1e-2)
+        np.testing.assert_allclose(J[0, node], numeric, atol=1e-7)
 
 
 def _inverse_adjoint(T: Pose) -> np.ndarray:
@@ -457,13 +463,36 @@ def _recorded_block(name: str):
     return Pose(d["pose_quat_wxyz"], d["pose_t_xyz"]), obs, d["held"]
 
 
+@pytest.mark.parametrize("name", ["block_gnss_ins_tilted_crawl.npz", "block_heldout_plane_nodes.npz"])
+def test_recorded_blocks_that_did_not_converge_converge(name):
+    # Recorded from runs that ended "no convergence after 50 iterations" (exit 1): the tilted head
+    # with GNSS/INS-like drift (medium class, seed 1; a relinking round's block) and the held-out
+    # building (world, seed 4; the final block, with plane nodes). The identity taken for the
+    # second station's Jacobian put Gauss-Newton's fixed point off the minimum, and a scan plane's
+    # offset at its node's origin let the origin slide along the plane.
+    poses, obs, held = _recorded_block(name)
+    result = adjust_block(poses, obs, held, BlockConfig(max_iterations=50))
+    assert not result.failed and result.iterations < 10
+
+
 def test_an_adjustment_at_its_minimum_to_a_thousandth_of_a_sigma_has_converged(monkeypatch):
-    # Recorded from the tilted head with GNSS/INS-like drift (medium class, seed 1), a relinking
-    # round's block: near its minimum the undamped step (the Gauss-Newton model: 5e-10 left to gain)
-    # raised the cost by 1.6e-7 (the approximate Jacobians), and the damped steps crawled by 5e-9 m
-    # an iteration, above the 1e-9 m test, until "no convergence after 50 iterations": exit 1.
+    # Where the Jacobians are not quite the residuals' (here the identity for the second station's
+    # but a FRAME tie's, as kinreg took it before), the undamped step near the minimum raised the cost by 1.6e-7
+    # where the model said 5e-10 was left, and the damped steps crawled by 5e-9 m an iteration,
+    # above the 1e-9 m test, to the iteration limit. The Newton decrement ends it.
     import kinreg.estimate.block as block
 
+    exact = block._pose_residuals
+
+    def approximate(poses, R, velocity, a, p, e, J):
+        exact(poses, R, velocity, a, p, e, J)
+        if J is not None:
+            at = np.arange(p.start, p.stop) if isinstance(p, slice) else p
+            rows = at[~a.station[at] & (a.kinds[at] != ObservationKind.FRAME.value)]
+            J[rows, 0] = np.linalg.solve(J[rows, 1], J[rows, 0])  # -Ad(rel^-1): the second's taken out
+            J[rows, 1] = np.eye(6)
+
+    monkeypatch.setattr(block, "_pose_residuals", approximate)
     poses, obs, held = _recorded_block("block_gnss_ins_tilted_crawl.npz")
     config = BlockConfig(max_iterations=50)
     result = adjust_block(poses, obs, held, config)
