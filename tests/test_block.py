@@ -479,9 +479,10 @@ def test_recorded_blocks_that_did_not_converge_converge(name):
 
 def test_an_adjustment_at_its_minimum_to_a_thousandth_of_a_sigma_has_converged(monkeypatch):
     # Where the Jacobians are not quite the residuals' (here the identity for the second station's
-    # but a FRAME tie's, and damping from 1e-4, as kinreg had it before), the undamped step near the minimum raised the cost by 1.6e-7
-    # where the model said 5e-10 was left, and the damped steps crawled by 5e-9 m an iteration,
-    # above the 1e-9 m test, to the iteration limit. The Newton decrement ends it.
+    # but a FRAME tie's, and damping from 1e-4, as kinreg had it before), the undamped step near
+    # the minimum raised the cost by 1.6e-7 where the model said 5e-10 was left, and the damped
+    # steps crawled by 5e-9 m an iteration, above the 1e-9 m test, to the iteration limit. The
+    # Newton decrement ends it.
     import kinreg.estimate.block as block
 
     exact = block._pose_residuals

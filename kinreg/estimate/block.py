@@ -178,10 +178,11 @@ _CHUNK = 1 << 15
 
 def _linearise(poses: Pose, velocity: FloatArray, a: _Active, jacobians: bool = True,
                out: tuple[FloatArray, FloatArray] | None = None) -> tuple[FloatArray, FloatArray]:
-    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) (see
-    :func:`_pose_residuals` for where they are exact). Pose observations: with ``D = Z^-1 T_i^-1 T_j``
-    (``Z^-1 T_i`` for a station's pose), ``e = (t_D, rotvec(R_D)) - dt S_j v``, the translation
-    difference in Z's axes and the rotation vector (the right-perturbation twist to first order);
+    """Residuals ``e`` (k, 6) and, with ``jacobians``, de/dx per slot (k, 3, 6, 6; else empty) (exact
+    but for a drift velocity's turn, :func:`_pose_residuals`). Pose observations: with ``D = Z^-1
+    T_i^-1 T_j`` (``Z^-1 T_i`` for a station's pose), ``e = (t_D, rotvec(R_D)) - dt S_j v``, the
+    translation difference in Z's axes and the rotation vector (the right-perturbation twist to
+    first order); a scan plane against its node: its tilts and offset (:func:`_scan_plane_residuals`);
     drift observations ``e = v_j - decay v_i`` (``v_i``); point observations
     ``e = ((1 - s) T_i l_0 + s T_j l_1 - Z.t, 0)`` (object axes). ``out``: an earlier result of the same
     ``a`` (with ``jacobians``) to write into: the same entries are written every time, the others
@@ -293,8 +294,8 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
     # as it is: the network's turn about its datum stays free). J_j differs from the identity by
     # the residual's rotation only (a few milliradians), but taking the identity is not harmless:
     # Gauss-Newton's fixed point is then not the minimum, and near it the undamped step raises the
-    # cost while the model says there is more to gain. A held-out run ended "no convergence after 50
-    # iterations" at a sigma0 of 0.871; exact, its block converges in 18 (0.844; issue #14).
+    # cost while the model says there is more to gain (issue #14: a held-out run's block ended "no
+    # convergence after 50 iterations").
     R_inv = quat_to_matrix(quat_conjugate(q_rel))
     ad = np.zeros((len(at), 6, 6))  # Ad(rel^-1) = [[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
     ad[:, :3, :3] = R_inv
@@ -668,10 +669,11 @@ _MAX_DAMPING = 1e8
 # Converged when the undamped step's predicted fall of the cost (the Newton decrement b^T N^-1 b, in
 # units of the weighted squares) is below this: the model's minimum is then within a thousandth of
 # a standard deviation of the unknowns (the step's length in the metric of their covariance, N),
-# whatever their units and however many. The approximate Jacobians (:func:`_pose_residuals`) can
-# leave the cost rising by a few 1e-7 along a step the model says gains 5e-10: without this test
-# the damped steps then crawled by 5e-9 m an iteration until the limit (issue #14: a GNSS/INS-like
-# run of the tilted head failed "no convergence after 50 iterations").
+# whatever their units and however many. Where the Jacobians are not quite the residuals' (a
+# drift velocity's turn into station j's axes is left out; before issue #14 the second station's
+# was the identity), the cost can rise by a few 1e-7 along a step the model says gains 5e-10:
+# without this test the damped steps then crawled by 5e-9 m an iteration until the limit (the
+# tilted head with GNSS/INS-like drift failed "no convergence after 50 iterations").
 _DECREMENT = 1e-6
 
 
@@ -679,8 +681,9 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
     """Damped Gauss-Newton (Levenberg-Marquardt) on SE(3) (the drift velocities are plain vectors)
     over the active observations ``a``. Converged when no unknown changes by more than
     ``config.convergence``, the cost falls by less than ``config.cost_tolerance`` of itself, or the
-    undamped step's predicted fall is below :data:`_DECREMENT`; returns the state (poses, velocities), the iterations, the factor of the undamped normal matrix
-    at the solution (for the covariances) and whether it converged."""
+    undamped step's predicted fall is below :data:`_DECREMENT`; returns the state (poses,
+    velocities), the iterations, the factor of the undamped normal matrix at the solution (for the
+    covariances) and whether it converged."""
     poses, velocity = start
     selection = normal.select(_columns(a, free_index), _unit_slots(a))
     # Each trial is linearised with its Jacobians: an accepted one (nearly all) is where the next
