@@ -10,8 +10,11 @@ Here the links only say which planes are the same physical plane (their matches,
 links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` whose z axis is the
 plane's normal and whose origin lies on it. Each scan plane in it observes ``T_k^-1 F_g`` twice,
 from the plane's own covariance: its two tilts (``PLANE``, rank 2) and its offset given the tilts
-(``PLANE_OFFSET``, rank 1), each kind with a variance component of its own, which may also fall
-below 1 (their residuals show their whole error: :mod:`kinreg.estimate.snooping`). A scan plane
+(``PLANE_OFFSET``, rank 1; as residuals the node's normal in the scan plane's frame and the node
+plane's distance from its anchor, which the node's free directions leave as they are:
+:func:`kinreg.estimate.block._scan_plane_residuals`), each kind with a variance component of its
+own, which may also fall below 1 (their residuals show their whole error:
+:mod:`kinreg.estimate.snooping`). A scan plane
 whose model is mostly the floors (a large plane: its least-squares sigmas far below them) observes
 as ``PLANE_FLOOR`` and ``PLANE_OFFSET_FLOOR`` instead, with components of their own
 (:func:`floor_bound`). The three
