@@ -284,35 +284,32 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         S[:, 3:, 3:] = S[:, :3, :3]
         S = -a.dt[at[has_v], None, None] * S
         e[at[has_v]] += (S @ velocity[v[has_v] - len(poses)][:, :, None])[:, :, 0]
+    if J is not None:
+        # The Jacobians for right perturbations (rho, phi): of T_j, J_j = [[R_Z^T R, 0], [0, J_r^-1(e_r)]]
+        # with rel = (R, t), and of T_i, J_i = -J_j Ad(rel^-1) (one motion of both leaves the residual
+        # as it is: the network's turn about its datum stays free). J_j differs from the identity by
+        # the residual's rotation only (a few milliradians), but taking the identity is not harmless:
+        # Gauss-Newton's fixed point is then not the minimum, and near it the undamped step raises the
+        # cost while the model says there is more to gain (issue #14: a held-out run's block ended "no
+        # convergence after 50 iterations").
+        R_inv = quat_to_matrix(quat_conjugate(q_rel))
+        ad = np.zeros((len(at), 6, 6))  # Ad(rel^-1) = [[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
+        ad[:, :3, :3] = R_inv
+        ad[:, 3:, 3:] = R_inv
+        ad[:, :3, 3:] = skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv
+        J_second = np.zeros((len(at), 6, 6))
+        J_second[:, :3, :3] = np.transpose(R_Z, (0, 2, 1)) @ np.transpose(R_inv, (0, 2, 1))
+        J_second[:, 3:, 3:] = _so3_right_jacobian_inv(phi_e)
+        J_i = -(J_second @ ad)
+        J_i[st] = J_second[st]  # a station's pose: e = (R_Z^T (t_i - t_Z), log(R_Z^T R_i))
+        if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
+            R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
+            J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
+        J[p, 0] = J_i
+        J[at[~st], 1] = J_second[~st]
+        if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
+            J[at[has_v], 2] = S
     planes = np.flatnonzero(np.isin(a.kinds[at], _SCAN_PLANES))
-    if J is None:
-        if len(planes):
-            _scan_plane_residuals(R_Z[planes], t_Z[planes], q_rel[planes], t_rel[planes], e, None, at[planes])
-        return
-    # The Jacobians for right perturbations (rho, phi): of T_j, J_j = [[R_Z^T R, 0], [0, J_r^-1(e_r)]]
-    # with rel = (R, t), and of T_i, J_i = -J_j Ad(rel^-1) (one motion of both leaves the residual
-    # as it is: the network's turn about its datum stays free). J_j differs from the identity by
-    # the residual's rotation only (a few milliradians), but taking the identity is not harmless:
-    # Gauss-Newton's fixed point is then not the minimum, and near it the undamped step raises the
-    # cost while the model says there is more to gain (issue #14: a held-out run's block ended "no
-    # convergence after 50 iterations").
-    R_inv = quat_to_matrix(quat_conjugate(q_rel))
-    ad = np.zeros((len(at), 6, 6))  # Ad(rel^-1) = [[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
-    ad[:, :3, :3] = R_inv
-    ad[:, 3:, 3:] = R_inv
-    ad[:, :3, 3:] = skew(-np.einsum("...ij,...j->...i", R_inv, t_rel)) @ R_inv
-    J_second = np.zeros((len(at), 6, 6))
-    J_second[:, :3, :3] = np.transpose(R_Z, (0, 2, 1)) @ np.transpose(R_inv, (0, 2, 1))
-    J_second[:, 3:, 3:] = _so3_right_jacobian_inv(phi_e)
-    J_i = -(J_second @ ad)
-    J_i[st] = J_second[st]  # a station's pose: e = (R_Z^T (t_i - t_Z), log(R_Z^T R_i))
-    if len(coupled):  # d(R_i^T s)/d(phi_i) = [R_i^T s]x for a right perturbation
-        R_Zt = np.transpose(R_Z[coupled], (0, 2, 1))
-        J_i[coupled, :3, 3:] -= kappa[coupled, None, None] * R_Zt @ skew(turned)
-    J[p, 0] = J_i
-    J[at[~st], 1] = J_second[~st]
-    if S is not None:  # S_j's own dependence on T_j is of the order dt |v| and left out
-        J[at[has_v], 2] = S
     if len(planes):
         _scan_plane_residuals(R_Z[planes], t_Z[planes], q_rel[planes], t_rel[planes], e, J, at[planes])
 
@@ -333,8 +330,9 @@ def _scan_plane_residuals(R_Z: FloatArray, t_Z: FloatArray, q_rel: FloatArray, t
     run ended "no convergence after 50 iterations", issue #14)."""
     R_rel = quat_to_matrix(q_rel)
     R_Zt = np.transpose(R_Z, (0, 2, 1))
+    D = R_Zt @ R_rel
     m = R_rel[:, :, 2]  # the node's normal in scan k's frame
-    n = np.einsum("kij,kj->ki", R_Zt, m)
+    n = D[:, :, 2]
     p = np.einsum("kij,kj->ki", R_Zt, t_rel - t_Z)
     e[rows] = 0.0
     e[rows, 2] = np.einsum("ki,ki->k", n, p)
@@ -344,7 +342,6 @@ def _scan_plane_residuals(R_Z: FloatArray, t_Z: FloatArray, q_rel: FloatArray, t
         return
     # d n and d p per right perturbation: of F (rho, phi): dn = -R_Z^T R_rel [e_z]x phi, dp = R_Z^T R_rel rho;
     # of T_k (rho, phi): dn = R_Z^T [m]x phi, dp = R_Z^T (-rho + [t_rel]x phi).
-    D = R_Zt @ R_rel
     ez = skew(np.array([0.0, 0.0, 1.0]))
     dn_F = np.zeros((len(rows), 3, 6))
     dn_F[:, :, 3:] = -D @ ez
