@@ -30,6 +30,7 @@ from kinreg.config import load_config
 from kinreg.io import e57_writer
 from kinreg.report.cloud_views import FIGURES_DIR
 from kinreg.run import output_folder
+from kinreg.run.liveness import process_alive
 from kinreg.run.output_folder import CACHE_FOLDER, LOCK_FILE, STAGING_FOLDER, output_folder_lock
 from kinreg.run.pipeline import OUTPUT_FILES, ProcessInputs, process
 from kinreg.simulation.files import write_run
@@ -211,6 +212,21 @@ def _alive(processes: dict[int, str]) -> list[int]:
     with a recycled pid is another one)."""
     now = _processes()
     return [pid for pid, start in processes.items() if pid in now and now[pid][1] != "Z" and now[pid][2] == start]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="zombies are read from /proc")
+def test_a_process_that_ended_is_not_alive_before_it_is_reaped() -> None:
+    # A worker that reaches its initialiser after the forkserver has ended checks the killed kinreg
+    # itself: a zombie until whoever started it waits for it, and then it has ended already.
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    try:
+        os.waitid(os.P_PID, child.pid, os.WEXITED | os.WNOWAIT)  # ended, not reaped: a zombie
+        assert _processes()[child.pid][1] == "Z"
+        assert not process_alive(child.pid)
+    finally:
+        child.wait()
+    assert not process_alive(child.pid)
+    assert process_alive(os.getpid())
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
