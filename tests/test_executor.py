@@ -4,6 +4,7 @@ and on a real Dask cluster (loopback)."""
 import ctypes
 import importlib.util
 import os
+import sys
 import time
 
 import numpy as np
@@ -197,3 +198,17 @@ def test_the_workers_start_in_the_background_and_outlive_the_thread_that_started
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split("\n")[:2] == ["1", "[1, 2, 3, 4]"]
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_a_worker_whose_parent_ended_before_it_asked_to_end_with_it_ends_at_once():
+    # A worker forked by the forkserver reaches its initialiser after the server (and the caller)
+    # may have ended: it knows the server's pid, and a parent that is not the server ends it.
+    import signal
+    import subprocess
+
+    code = "import os; from kinreg.run.executor import die_with_parent; die_with_parent(parent_pid={}); print('alive')"
+    ended = subprocess.run([sys.executable, "-c", code.format("os.getpid()")], capture_output=True, text=True)
+    assert (ended.returncode, ended.stdout) == (-signal.SIGTERM, "")
+    kept = subprocess.run([sys.executable, "-c", code.format("os.getppid()")], capture_output=True, text=True)
+    assert (kept.returncode, kept.stdout) == (0, "alive\n")

@@ -6,7 +6,12 @@ Importing this module changes ``os.environ`` and this process's parent-death sig
 the forkserver imports it, first (it preloads the workers' tasks' module after it).
 """
 
+import os
+
 from kinreg.run.executor import die_with_parent, limit_worker_threads
+
+# The server's pid, which every worker forked from it inherits: its parent when it started.
+SERVER_PID = os.getpid()
 
 # If the starting process has already ended, the server ends anyway: its "alive" pipe is at EOF
 # and no worker holds it yet.

@@ -81,15 +81,17 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 _PR_SET_PDEATHSIG = 1
 
 
-def die_with_parent(sig: signal.Signals = signal.SIGTERM, ancestor_pid: int | None = None) -> bool:
+def die_with_parent(sig: signal.Signals = signal.SIGTERM, ancestor_pid: int | None = None,
+                    parent_pid: int | None = None) -> bool:
     """Ask the kernel to send ``sig`` to this process when its parent ends (Linux; elsewhere a
-    no-op that returns False). If the parent, or ``ancestor_pid`` (a process further up the
-    chain), has already ended by the time the request is in place, ``sig`` is sent to this
-    process at once. Returns whether the request was made. Only for kinreg's own child
-    processes: the setting is cleared for children forked from this one."""
+    no-op that returns False). If the parent (``parent_pid`` where the caller knows which process
+    started it: then one that has ended before this call counts too), or ``ancestor_pid`` (a
+    process further up the chain), has already ended by the time the request is in place, ``sig``
+    is sent to this process at once. Returns whether the request was made. Only for kinreg's own
+    child processes: the setting is cleared for children forked from this one."""
     if not sys.platform.startswith("linux"):
         return False
-    parent = os.getppid()
+    parent = os.getppid() if parent_pid is None else parent_pid
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         if libc.prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
@@ -108,7 +110,11 @@ def start_worker(caller_pid: int) -> None:
     """Initialiser of every local worker process: ends with its parent (the forkserver, which
     ends with ``caller_pid``), leaves SIGINT to the caller, one BLAS/OpenMP thread (see the
     module docstring). Never called in the calling process."""
-    die_with_parent(ancestor_pid=caller_pid)
+    # A worker forked by the forkserver knows its parent from the server's preloaded module: the
+    # server may have ended (with the caller) between the fork and this, and the worker's parent
+    # is then another process, whatever state the caller's exit is in.
+    server = sys.modules.get("kinreg.run._worker_threads")
+    die_with_parent(ancestor_pid=caller_pid, parent_pid=getattr(server, "SERVER_PID", None))
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     limit_worker_threads()
     keep_freed_memory()  # a worker's next scan reuses the pages of the last one
