@@ -254,7 +254,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         for block in run.iter_cloud_blocks():
             yield block, block.xyz_obj
 
-    adjustment = json.loads((workdir / "out" / "report.json").read_text())["adjustment"]
+    report = json.loads((workdir / "out" / "report.json").read_text())
+    adjustment = report["adjustment"]
     drift = adjustment["drift_rates"]
     (rms_corrected, thick_corrected), (rms_rigid, _), (rms_truth, thick_truth), (rms_input, thick_input) = (
         cloud_fit(run, cloud) for cloud in (corrected(), corrected(rigid=True), with_truth(), drifted()))
@@ -279,6 +280,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
                                      "corrected_over_truth": thick_corrected / thick_truth},
         "gaps_mm": {"mean": summary.gaps_mean_mm, "max": summary.gaps_max_mm},
         "rejected_observations": summary.n_rejected,
+        "trajectory_misfits": len(adjustment.get("trajectory_misfits") or []),
+        "window_s": (report.get("slicing") or {}).get("window_s"),
         "process_wall_s": wall,
         "timings_s": summary.timings_s,
     }

@@ -190,6 +190,24 @@ def chi2_quantile(p: float, dof: float) -> float:
     return float(stats.chi2.ppf(p, dof))
 
 
+def trajectory_misfits(tests: Sequence[ObservationTest], alpha: float) -> list[ObservationTest]:
+    """The trajectory's links that disagree with the adjusted network beyond what one of them may
+    (chi-square at ``alpha`` over their number), the worst first. They are never rejected, so such
+    a misfit means that plane links moved stations against the trajectory (a wrong match the tests
+    did not find) or a jump the detector missed; the global test can pass all the same."""
+    links = [t for t in tests if t.kind is ObservationKind.TRAJECTORY and np.isfinite(t.statistic)]
+    if not links:
+        return []
+    critical = {dof: chi2_quantile(1.0 - alpha / len(links), dof) for dof in {t.dof for t in links}}
+    return sorted((t for t in links if t.statistic > critical[t.dof]), key=lambda t: -t.statistic / critical[t.dof])
+
+
+def misfit_text(misfits: Sequence[ObservationTest]) -> str:
+    """``misfits`` (:func:`trajectory_misfits`) in a line: how many, the worst five."""
+    worst = ", ".join(f"{t.i}-{t.j} ({t.normalised:.0f} sigma)" for t in misfits[:5])
+    return f"{len(misfits)} pair(s) of consecutive stations: {worst}"
+
+
 def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
     """Positions in ``tests`` of the observations to reject in one round, worst first, among the
     ``candidates`` (bool, k): those above the critical value that are the worst among all such

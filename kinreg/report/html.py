@@ -153,11 +153,17 @@ def _verdict(report: dict[str, Any]) -> str:
     if adj.get("status") == "failed":
         return _tag("div", _esc(f"ADJUSTMENT FAILED: {adj.get('failure') or DASH}. This run has no result: "
                                 "no station, link or correction of it may be used."), class_="verdict fail")
+    misfits = adj.get("trajectory_misfits") or []
     test = {True: "global test passed", False: "global test FAILED"}.get(passed, "global test not available")
-    level = "fail" if passed is False else ("warn" if rejected or passed is None else "pass")
+    level = "fail" if passed is False else ("warn" if rejected or misfits or passed is None else "pass")
     text = (f"\u03c3\u2080 = {_fmt(adj.get('sigma0'), 3)} \u2014 {test} (\u03b1 = {adj.get('alpha', DASH)}, "
             f"redundancy {_fmt(adj.get('redundancy'), 0)}) \u00b7 {len(rejected)} of {_count(n_obs)} "
             f"observations rejected \u00b7 datum: {adj.get('datum', DASH)}")
+    if misfits:
+        worst = ", ".join(f"{m['stations'][0]}-{m['stations'][1]} ({_fmt(m['normalised'], 0)} \u03c3)"
+                          for m in misfits[:5])
+        text += (f" \u00b7 the trajectory disagrees with the network between {len(misfits)} pair(s) of "
+                 f"consecutive stations ({worst}): check the links there (a wrong plane match or a jump)")
     return _tag("div", _esc(text), class_=f"verdict {level}")
 
 

@@ -15,6 +15,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.network import Network
 from kinreg.estimate.reference import as_built
+from kinreg.estimate.snooping import trajectory_misfits
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.tables import stations_table, write_text
@@ -125,6 +126,9 @@ def build_report(
             "n_observations": len(result.tests),
             "rejected_observations": rejected,
             "normalised_residuals": tests_by_kind,
+            # the trajectory's links beyond their model (never rejected: a wrong match or a jump)
+            "trajectory_misfits": [{"stations": [int(t.i), int(t.j)], "normalised": float(t.normalised)}
+                                   for t in trajectory_misfits(result.tests, alpha)],
         },
         "stations": {
             "n": len(stations),

@@ -39,7 +39,7 @@ from kinreg.estimate.plane_nodes import plane_clusters
 from kinreg.estimate.planes import detect_planes
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import SensorTrack, sensor_track
-from kinreg.estimate.snooping import chi2_quantile
+from kinreg.estimate.snooping import misfit_text, trajectory_misfits
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.io.checks import check_inputs
 from kinreg.io.reference_planes import ReferencePlanes
@@ -335,20 +335,12 @@ def _settled_coupling(tried: Sequence[tuple[float, float]]) -> float:
 
 
 def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
-    """Say where the trajectory's own links disagree with the adjusted network beyond what one of
-    them may (chi-square at ``alpha`` over their number): they are never rejected, so such a
-    misfit means that plane links moved stations against the trajectory (a wrong match the tests
-    did not find) or a jump the detector missed; the global test can pass all the same."""
-    links = [t for t in result.tests if t.kind is ObservationKind.TRAJECTORY and np.isfinite(t.statistic)]
-    if not links:
-        return
-    critical = {dof: chi2_quantile(1.0 - alpha / len(links), dof) for dof in {t.dof for t in links}}
-    bad = sorted((t for t in links if t.statistic > critical[t.dof]), key=lambda t: -t.statistic / critical[t.dof])
-    if bad:
-        worst = ", ".join(f"{t.i}-{t.j} ({t.normalised:.0f} sigma)" for t in bad[:5])
-        log.warning("the trajectory disagrees with the adjusted network between %d pair(s) of consecutive "
-                    "stations beyond its model: %s. Check the links there (a wrong plane match or a jump)",
-                    len(bad), worst)
+    """Say where the trajectory's own links disagree with the adjusted network beyond their model
+    (:func:`~kinreg.estimate.snooping.trajectory_misfits`)."""
+    misfits = trajectory_misfits(result.tests, alpha)
+    if misfits:
+        log.warning("the trajectory disagrees with the adjusted network between %s. Check the links there "
+                    "(a wrong plane match or a jump)", misfit_text(misfits))
 
 
 def _linked_pairs(links: Sequence[Link]) -> set[tuple[int, int]]:
@@ -358,11 +350,15 @@ def _linked_pairs(links: Sequence[Link]) -> set[tuple[int, int]]:
 def _checked(result: BlockResult) -> BlockResult:
     """``result``, unless the adjustment failed: then :class:`AdjustmentFailedError`."""
     if result.failed:
-        raise AdjustmentFailedError(
-            f"the block adjustment failed: {result.failure} (sigma0 {result.sigma0:.3g}, redundancy "
-            f"{result.redundancy:.0f}); nothing was written. Check the links in a `kinreg link` run, or set "
-            '[block] on_failure = "report" to keep a report marked failed', result)
+        raise AdjustmentFailedError(checked_reason(result), result)
     return result
+
+
+def checked_reason(result: BlockResult) -> str:
+    """The line a failed adjustment ends the run with."""
+    return (f"the block adjustment failed: {result.failure} (sigma0 {result.sigma0:.3g}, redundancy "
+            f"{result.redundancy:.0f}); nothing was written. Check the links in a `kinreg link` run, or set "
+            '[block] on_failure = "report" to keep a report marked failed')
 
 
 # Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.

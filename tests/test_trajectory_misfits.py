@@ -1,0 +1,92 @@
+"""The trajectory's own links beyond their model: never rejected, they show plane links that agree
+on a wrong match no test found (held-out runs, world drift 0.26 m: the global test passed with the
+stations 28-63 mm RMS off). Such a network is no result, and shorter windows whose network shows
+one while the longer windows' did not are not kept."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+from clirunner import run_cli
+from test_bad_inputs import message_lines, result_files
+
+from kinreg.config import load_config
+from kinreg.estimate.snooping import chi2_quantile, trajectory_misfits
+from kinreg.types import ObservationKind, ObservationTest
+
+SAMPLE = Path(__file__).parent.parent / "sample_data"
+
+
+def _test(kind: ObservationKind, i: int, statistic: float, dof: int = 6) -> ObservationTest:
+    return ObservationTest(i, kind, i, i + 1, statistic, dof, 1.0, math.sqrt(statistic / dof), False)
+
+
+def test_the_misfits_are_the_trajectory_links_beyond_their_model_over_their_number_worst_first():
+    critical = chi2_quantile(1.0 - 0.001 / 4, 6)  # four trajectory links at alpha 0.001
+    trajectory = ObservationKind.TRAJECTORY
+    tests = [_test(trajectory, 0, 0.99 * critical), _test(trajectory, 1, 1.5 * critical),
+             _test(trajectory, 2, 3.0 * critical), _test(trajectory, 3, float("nan")),
+             _test(trajectory, 4, 1.01 * critical),
+             _test(ObservationKind.PLANES, 5, 100.0 * critical)]  # a plane link is snooping's, not this
+    assert [t.i for t in trajectory_misfits(tests, 0.001)] == [2, 1, 4]
+    # alone, the first is tested against one link's critical value, which it exceeds
+    assert [t.i for t in trajectory_misfits(tests[:1] + tests[5:], 0.001)] == [0]
+    assert trajectory_misfits(tests[3:4] + tests[5:], 0.001) == []
+    assert trajectory_misfits([], 0.001) == []
+
+
+def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_failed(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import kinreg.run.pipeline as pipeline
+
+    out = tmp_path / "out"
+    args = ["process", "-t", SAMPLE / "run_trajectory.txt", "-c", SAMPLE / "run_cloud.laz", "-o", out]
+    code, _, err = run_cli(args, capsys)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["adjustment"]["trajectory_misfits"] == []  # the sample's network agrees with its trajectory
+    # The final network's trajectory link 2-3 at 9 sigma, as a wrong match would leave it.
+    monkeypatch.setattr(pipeline, "trajectory_misfits", lambda tests, alpha: [
+        t for t in tests if t.kind is ObservationKind.TRAJECTORY and (t.i, t.j) == (2, 3)])
+    code, _, err = run_cli([*args, "--resume"], capsys)
+    lines = message_lines(err)
+    assert code == 1 and "Traceback" not in err
+    assert len(lines) == 1, err
+    assert "the trajectory disagrees with the adjusted network between 1 pair(s) of consecutive stations: 2-3" \
+        in lines[0]
+    assert "nothing was written" in lines[0]
+    assert result_files(out) == []  # the earlier run's outputs are gone too
+    (tmp_path / "report.toml").write_text('[block]\non_failure = "report"\n')
+    code, _, err = run_cli([*args, "--resume", "--config", tmp_path / "report.toml"], capsys)
+    assert code == 1 and "marked failed" in message_lines(err)[0]
+    assert sorted(p.name for p in result_files(out)) == ["report.html", "report.json"]
+    failed = json.loads((out / "report.json").read_text())["adjustment"]
+    assert failed["status"] == "failed" and failed["failure"].startswith("the trajectory disagrees")
+    assert "ADJUSTMENT FAILED" in (out / "report.html").read_text()
+
+
+def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    import kinreg.run.pipeline as pipeline
+    from kinreg.run.pipeline import ProcessInputs, process
+    from kinreg.simulation.files import write_run
+    from kinreg.simulation.run import SimulationConfig, simulate_run
+
+    write_run(simulate_run(SimulationConfig(seed=5, duration_s=24.0)), tmp_path / "data")
+    inputs = ProcessInputs(tmp_path / "data" / "run_trajectory.txt", tmp_path / "data" / "run_cloud.laz")
+    (tmp_path / "again.toml").write_text("[slicing]\nmax_smear_share = 1e-9\nmin_window_s = 3.0\n")  # sliced again
+    (tmp_path / "once.toml").write_text("[slicing]\nadaptive = false\n")
+    once = process(inputs, tmp_path / "once", load_config(tmp_path / "once.toml"))
+    assert once.n_stations == 4  # 6 s windows; 3 s windows give 8
+    # a misfit in every network of more than four stations: the 3 s windows'
+    monkeypatch.setattr(pipeline, "trajectory_misfits", lambda tests, alpha: [
+        t for t in tests if t.kind is ObservationKind.TRAJECTORY and t.j >= 4])
+    kept = process(inputs, tmp_path / "kept", load_config(tmp_path / "again.toml"))
+    assert kept.n_stations == 4
+    for name in ("stations.csv", "trajectory_corrected.txt", "corrected.laz"):
+        assert (tmp_path / "kept" / name).read_bytes() == (tmp_path / "once" / name).read_bytes(), name
+    assert json.loads((tmp_path / "kept" / "report.json").read_text())["slicing"]["window_s"] == 6.0
