@@ -326,8 +326,11 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
                           progress: Progress, executor: ExecutorContext, clock: StageClock,
                           control: Assignment | None = None) -> tuple[EstimatedNetwork, KinregConfig]:
     """:func:`estimate_network`; where the measured drift smears the planes of its windows
-    (:func:`~kinreg.estimate.slicing.shorter_window_s`), once more with shorter windows. Returns
-    the result and the configuration it was made with."""
+    (:func:`~kinreg.estimate.slicing.shorter_window_s`), once more with shorter windows
+    (:func:`_with_shorter_windows`). Returns the result and the configuration it was made with;
+    raises :class:`AdjustmentFailedError` (after :func:`fail_adjustment`) where the trajectory
+    disagrees with that result's network
+    (:func:`~kinreg.estimate.snooping.trajectory_misfits`)."""
     est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
                            control)
     chosen = _with_shorter_windows(stack, folder, inputs, trajectories, references, config, progress, executor,
