@@ -74,6 +74,7 @@ from kinreg.run.runs import (
 )
 from kinreg.run.spill import QuasiStaticSequence, slice_quasi_static
 from kinreg.run.stages import (
+    REPORT_ADVICE,
     AdjustedNetwork,
     KinematicStations,
     adjust_with_measured_drift,
@@ -443,8 +444,9 @@ def fail_adjustment(e: AdjustmentFailedError, network: Network, config: KinregCo
     shutil.rmtree(folder.out_dir / FIGURES_DIR, ignore_errors=True)  # the report's images of an earlier run
     if config.block.on_failure is not OnFailure.REPORT:
         raise e
-    raise AdjustmentFailedError(e.reason.replace("nothing was written", f"report.json in {folder.out_dir} is "
-                                                 "marked failed, nothing else was written"), e.result) from None
+    reason = e.reason.replace("nothing was written", f"report.json in {folder.out_dir} is marked failed, nothing "
+                              "else was written").replace(f", or set {REPORT_ADVICE}", "")  # it is set
+    raise AdjustmentFailedError(reason, e.result) from None
 
 
 def write_tables(out: Path, report: dict[str, Any], network: Network, result: BlockResult,

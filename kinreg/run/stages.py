@@ -354,11 +354,15 @@ def _checked(result: BlockResult) -> BlockResult:
     return result
 
 
+# How to keep a report of a failed adjustment (the end of checked_reason's line).
+REPORT_ADVICE = '[block] on_failure = "report" to keep a report marked failed'
+
+
 def checked_reason(result: BlockResult) -> str:
     """The line a failed adjustment ends the run with."""
     return (f"the block adjustment failed: {result.failure} (sigma0 {result.sigma0:.3g}, redundancy "
             f"{result.redundancy:.0f}); nothing was written. Check the links in a `kinreg link` run, or set "
-            '[block] on_failure = "report" to keep a report marked failed')
+            f"{REPORT_ADVICE}")
 
 
 # Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.
