@@ -268,12 +268,15 @@ class ObservationKind(enum.Enum):
     PLANE_OFFSET = "plane offset"  # ... and its offset, given its tilts
     PLANE_FLOOR = "plane (floor)"  # a scan plane's tilts whose model is mostly the floor (a large plane)
     PLANE_OFFSET_FLOOR = "plane offset (floor)"  # ... its offset, likewise
+    PLANE_FLOOR_LEVEL = "plane (floor, level)"  # ... of a level plane: floor, ceiling (no heading drift in them)
+    PLANE_OFFSET_FLOOR_LEVEL = "plane offset (floor, level)"  # ... its offset, likewise
 
 
 # The kinds a scan plane observes its physical plane with (kinreg.estimate.plane_nodes), and their
 # ranks: its tilts 2, its offset given the tilts 1.
 SCAN_PLANE_RANK = {ObservationKind.PLANE: 2, ObservationKind.PLANE_OFFSET: 1, ObservationKind.PLANE_FLOOR: 2,
-                   ObservationKind.PLANE_OFFSET_FLOOR: 1}
+                   ObservationKind.PLANE_OFFSET_FLOOR: 1, ObservationKind.PLANE_FLOOR_LEVEL: 2,
+                   ObservationKind.PLANE_OFFSET_FLOOR_LEVEL: 1}
 
 
 @dataclass(frozen=True, eq=False)

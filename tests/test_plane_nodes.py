@@ -101,7 +101,14 @@ def test_scan_planes_whose_model_is_mostly_the_floor_form_kinds_of_their_own():
 
     n = 2 * len(ROOM)
     assert kinds((0.0, 0.0)) == [ObservationKind.PLANE, ObservationKind.PLANE_OFFSET] * n
-    # floors of the planes' own size: more than half of each variance
-    assert kinds((2e-4, 5e-4)) == [ObservationKind.PLANE_FLOOR, ObservationKind.PLANE_OFFSET_FLOOR] * n
+    # floors of the planes' own size: more than half of each variance; the floor and the ceiling
+    # (ROOM's planes 4 and 5; plane 7 is inclined 37 deg) in kinds of their own
+    level = [abs(normal[2]) > 0.9 for normal, *_ in ROOM]
+    assert level == [False] * 4 + [True] * 2 + [False] * 2
+    assert kinds((2e-4, 5e-4)) == [kind for lv in level for kind in (
+        [ObservationKind.PLANE_FLOOR_LEVEL, ObservationKind.PLANE_OFFSET_FLOOR_LEVEL] if lv
+        else [ObservationKind.PLANE_FLOOR, ObservationKind.PLANE_OFFSET_FLOOR]) * 2]
     # a tenth of it in the tilts only
-    assert kinds((2e-5, 5e-4)) == [ObservationKind.PLANE, ObservationKind.PLANE_OFFSET_FLOOR] * n
+    assert kinds((2e-5, 5e-4)) == [kind for lv in level for kind in (
+        [ObservationKind.PLANE, ObservationKind.PLANE_OFFSET_FLOOR_LEVEL] if lv
+        else [ObservationKind.PLANE, ObservationKind.PLANE_OFFSET_FLOOR]) * 2]

@@ -17,7 +17,8 @@ own, which may also fall below 1 (their residuals show their whole error:
 :mod:`kinreg.estimate.snooping`). A scan plane
 whose model is mostly the floors (a large plane: its least-squares sigmas far below them) observes
 as ``PLANE_FLOOR`` and ``PLANE_OFFSET_FLOOR`` instead, with components of their own
-(:func:`floor_bound`). The three
+(:func:`floor_bound`); a level one (floor, ceiling: :func:`is_level`) as ``PLANE_FLOOR_LEVEL`` and
+``PLANE_OFFSET_FLOOR_LEVEL``. The three
 directions a plane leaves free (the shift in it, the turn about its normal) are held by a
 ``STATION`` observation of the node itself with only those directions (one metre, one radian): no
 other observation sees them, so it changes nothing else, has no redundancy and is never tested.
@@ -134,6 +135,22 @@ def floor_bound(tilts: FloatArray, offset: FloatArray, floors: tuple[float, floa
     return floors[0] ** 2 > 0.5 * tilt_var, floors[1] ** 2 > 0.5 * offset_var
 
 
+# A plane whose normal is within this of the object frame's vertical (cosine: 25 deg) is level.
+_LEVEL_COS = 0.9
+
+
+def is_level(normal_obj: FloatArray) -> bool:
+    """Whether a physical plane (its normal in the object frame, z up) is level: a floor or a
+    ceiling. Its scan planes' errors are not those of the walls: the trajectory's largest drift, in
+    heading, and its horizontal drift leave a level plane where it is, so the drift inside a
+    window neither tilts nor shifts it, while it turns and shifts every wall. With one variance
+    component for both, the walls (most of the planes) set it: the level planes then weigh too
+    little, and the heights and tilts of the network they fix come out pessimistic, while the
+    walls weigh too much (on the held-out building the level planes' offsets were at the 25x
+    cap, the walls' at 0.15; benchmarks/RESULTS.md)."""
+    return abs(float(normal_obj[2])) > _LEVEL_COS
+
+
 def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], nodes: PlaneNodes,
                             first_node: int) -> tuple[Pose, list[RelativeObservation]]:
     """The plane nodes' initial poses (object frame, from the cluster's largest plane on the
@@ -155,6 +172,7 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
         quats.append(F.quat_wxyz)
         origins.append(F.t_xyz)
         node = first_node + g
+        level = is_level(F.rotation_matrix[:, 2])
         for k, pid in members:
             plane = by_id[k][pid]
             D = poses[k].inverse().compose(F)  # the node in scan k's frame, as predicted
@@ -167,9 +185,10 @@ def plane_node_observations(poses: Pose, planes: Sequence[Sequence[Plane]], node
             Z = Pose(matrix_to_quat(R), o)
             tilts, offset = plane_information(plane, R, o)
             tilts_floor, offset_floor = floor_bound(tilts, offset, nodes.floors)
-            for kind, info in ((ObservationKind.PLANE_FLOOR if tilts_floor else ObservationKind.PLANE, tilts),
-                               (ObservationKind.PLANE_OFFSET_FLOOR if offset_floor else ObservationKind.PLANE_OFFSET,
-                                offset)):
+            at_floor = (ObservationKind.PLANE_FLOOR_LEVEL, ObservationKind.PLANE_OFFSET_FLOOR_LEVEL) if level else (
+                ObservationKind.PLANE_FLOOR, ObservationKind.PLANE_OFFSET_FLOOR)
+            for kind, info in ((at_floor[0] if tilts_floor else ObservationKind.PLANE, tilts),
+                               (at_floor[1] if offset_floor else ObservationKind.PLANE_OFFSET, offset)):
                 observations.append(RelativeObservation(kind, k, node, Z, info, SCAN_PLANE_RANK[kind]))
         observations.append(RelativeObservation(ObservationKind.STATION, node, -1, F, gauge.copy(), 3))
     if not quats:
