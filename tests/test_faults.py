@@ -339,3 +339,14 @@ def test_a_run_killed_while_moving_its_outputs_in_is_completed_by_the_next(
     assert summary.stage_cache["corrected cloud"] == {"reused": 1, "computed": 0}
     assert outputs(out) == outputs(run / "reference") != earlier
     assert {p.name for p in out.iterdir()} == {*OUTPUT_FILES, CACHE_FOLDER, FIGURES_DIR}
+
+
+def test_the_resource_tracker_of_a_run_does_not_warn_after_an_interrupt(capsys: pytest.CaptureFixture[str]) -> None:
+    # Ctrl-C ends the workers while their queues' semaphores are being unlinked; Python's resource
+    # tracker (its own process) then warned of leaked semaphores after "kinreg: interrupted". It is
+    # started with this interpreter's -W flags, which kinreg's entry point sets.
+    from multiprocessing import util
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    assert "-Wignore::UserWarning:multiprocessing.resource_tracker" in util._args_from_interpreter_flags()
