@@ -41,7 +41,7 @@ def test_the_misfits_are_the_trajectory_links_beyond_their_model_over_their_numb
 def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_failed(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import kinreg.run.pipeline as pipeline
+    import kinreg.run.stages as stages
 
     out = tmp_path / "out"
     args = ["process", "-t", SAMPLE / "run_trajectory.txt", "-c", SAMPLE / "run_cloud.laz", "-o", out]
@@ -50,7 +50,7 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
     report = json.loads((out / "report.json").read_text())
     assert report["adjustment"]["trajectory_misfits"] == []  # the sample's network agrees with its trajectory
     # The final network's trajectory link 2-3 at 9 sigma, as a wrong match would leave it.
-    monkeypatch.setattr(pipeline, "trajectory_misfits", lambda tests, alpha: [
+    monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: [
         t for t in tests if t.kind is ObservationKind.TRAJECTORY and (t.i, t.j) == (2, 3)])
     code, _, err = run_cli([*args, "--resume"], capsys)
     lines = message_lines(err)
@@ -72,7 +72,7 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
 
 def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    import kinreg.run.pipeline as pipeline
+    import kinreg.run.stages as stages
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import SimulationConfig, simulate_run
@@ -84,7 +84,7 @@ def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Pa
     once = process(inputs, tmp_path / "once", load_config(tmp_path / "once.toml"))
     assert once.n_stations == 4  # 6 s windows; 3 s windows give 8
     # a misfit in every network of more than four stations: the 3 s windows'
-    monkeypatch.setattr(pipeline, "trajectory_misfits", lambda tests, alpha: [
+    monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: [
         t for t in tests if t.kind is ObservationKind.TRAJECTORY and t.j >= 4])
     kept = process(inputs, tmp_path / "kept", load_config(tmp_path / "again.toml"))
     assert kept.n_stations == 4

@@ -39,7 +39,7 @@ from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import shorter_window_s, window_smear_m
-from kinreg.estimate.snooping import misfit_text, trajectory_misfits
+from kinreg.estimate.snooping import misfit_text
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
@@ -74,7 +74,6 @@ from kinreg.run.runs import (
 )
 from kinreg.run.spill import QuasiStaticSequence, slice_quasi_static
 from kinreg.run.stages import (
-    REPORT_ADVICE,
     AdjustedNetwork,
     KinematicStations,
     adjust_with_measured_drift,
@@ -341,11 +340,10 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
     # The trajectory's own links are never rejected: beyond their model they show plane links that
     # agree on a wrong match no test found (or a jump the detector missed). The global test can
     # pass all the same, and the stations be 30-60 mm RMS off (held-out runs, world drift 0.26 m).
-    misfits = trajectory_misfits(est.adjusted.result.tests, config.block.alpha)
-    if misfits:
+    if est.adjusted.misfits:
         failed = dataclasses.replace(est.adjusted.result, failure=(
-            f"the trajectory disagrees with the adjusted network between {misfit_text(misfits)}, beyond its "
-            "model: plane links that agree on a wrong match, or a jump in the trajectory"))
+            f"the trajectory disagrees with the adjusted network between {misfit_text(est.adjusted.misfits)}, "
+            "beyond its model: plane links that agree on a wrong match, or a jump in the trajectory"))
         fail_adjustment(AdjustmentFailedError(checked_reason(failed), failed), est.adjusted.network, config, folder,
                         inputs_report(inputs.runs, est.kinematic.trajectories, est.sliced, inputs.static,
                                       inputs.reference))
@@ -372,11 +370,10 @@ def _with_shorter_windows(stack: contextlib.ExitStack, folder: RunCache, inputs:
     # windows' network had no such misfit, it is the better result (a held-out run, world drift
     # 0.26 m: 3 s windows ended 63 mm RMS off with the global test passed, 7 sigma between the
     # trajectory and the network; its 6 s windows were within 5 mm).
-    misfits = trajectory_misfits(again.adjusted.result.tests, config.block.alpha)
-    if misfits and not trajectory_misfits(est.adjusted.result.tests, config.block.alpha):
+    if again.adjusted.misfits and not est.adjusted.misfits:
         log.warning("with %.1f s windows the trajectory disagrees with the adjusted network between %s "
                     "(a wrong plane match the tests did not find): kept the %.1f s windows",
-                    window, misfit_text(misfits), config.slicing.window_s)
+                    window, misfit_text(again.adjusted.misfits), config.slicing.window_s)
         # the first slicing's spill made way for the second's: sliced again, the rest from the cache
         return estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
                                 control, decoded=[slices.records() for slices in again.sliced]), config
@@ -444,9 +441,7 @@ def fail_adjustment(e: AdjustmentFailedError, network: Network, config: KinregCo
     shutil.rmtree(folder.out_dir / FIGURES_DIR, ignore_errors=True)  # the report's images of an earlier run
     if config.block.on_failure is not OnFailure.REPORT:
         raise e
-    reason = e.reason.replace("nothing was written", f"report.json in {folder.out_dir} is marked failed, nothing "
-                              "else was written").replace(f", or set {REPORT_ADVICE}", "")  # it is set
-    raise AdjustmentFailedError(reason, e.result) from None
+    raise AdjustmentFailedError(checked_reason(e.result, report_in=folder.out_dir), e.result) from None
 
 
 def write_tables(out: Path, report: dict[str, Any], network: Network, result: BlockResult,

@@ -56,6 +56,7 @@ from kinreg.types import (
     Link,
     LinkStatus,
     ObservationKind,
+    ObservationTest,
     Plane,
     Scan,
     ScanKind,
@@ -215,6 +216,8 @@ class AdjustedNetwork:
     network: Network  # the links the result rests on (linked again when the drift was faster)
     result: BlockResult
     rates: DriftRates
+    # the trajectory's links beyond their model (kinreg.estimate.snooping.trajectory_misfits), worst first
+    misfits: tuple[ObservationTest, ...] = ()
 
 
 def adjust_with_measured_drift(
@@ -288,10 +291,10 @@ def adjust_with_measured_drift(
         network = replace(network, planes=tuple(used_planes), plane_nodes=plane_clusters(
             usable, (config.planes.min_sigma_angle_rad, config.planes.min_sigma_d_m)))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
-    _warn_trajectory_misfits(result, config.block.alpha)
+    misfits = _warn_trajectory_misfits(result, config.block.alpha)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
-    return AdjustedNetwork(network, result, rates)
+    return AdjustedNetwork(network, result, rates, tuple(misfits))
 
 
 def _correlation_of_deskewed(network: Network, result: BlockResult, rates: DriftRates, prior: DriftRates,
@@ -334,13 +337,14 @@ def _settled_coupling(tried: Sequence[tuple[float, float]]) -> float:
 
 
 
-def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> None:
+def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> list[ObservationTest]:
     """Say where the trajectory's own links disagree with the adjusted network beyond their model
-    (:func:`~kinreg.estimate.snooping.trajectory_misfits`)."""
+    (:func:`~kinreg.estimate.snooping.trajectory_misfits`); returns them."""
     misfits = trajectory_misfits(result.tests, alpha)
     if misfits:
         log.warning("the trajectory disagrees with the adjusted network between %s. Check the links there "
                     "(a wrong plane match or a jump)", misfit_text(misfits))
+    return misfits
 
 
 def _linked_pairs(links: Sequence[Link]) -> set[tuple[int, int]]:
@@ -354,15 +358,16 @@ def _checked(result: BlockResult) -> BlockResult:
     return result
 
 
-# How to keep a report of a failed adjustment (the end of checked_reason's line).
-REPORT_ADVICE = '[block] on_failure = "report" to keep a report marked failed'
-
-
-def checked_reason(result: BlockResult) -> str:
-    """The line a failed adjustment ends the run with."""
-    return (f"the block adjustment failed: {result.failure} (sigma0 {result.sigma0:.3g}, redundancy "
-            f"{result.redundancy:.0f}); nothing was written. Check the links in a `kinreg link` run, or set "
-            f"{REPORT_ADVICE}")
+def checked_reason(result: BlockResult, report_in: Path | None = None) -> str:
+    """The line a failed adjustment ends the run with; ``report_in``: the folder where a report
+    marked failed was written (``[block] on_failure = "report"``)."""
+    head = (f"the block adjustment failed: {result.failure} (sigma0 {result.sigma0:.3g}, redundancy "
+            f"{result.redundancy:.0f})")
+    if report_in is not None:
+        return (f"{head}; report.json in {report_in} is marked failed, nothing else was written. Check the links "
+                "in a `kinreg link` run")
+    return (f"{head}; nothing was written. Check the links in a `kinreg link` run, or set [block] on_failure = "
+            '"report" to keep a report marked failed')
 
 
 # Pairs per task on an executor: a pair takes milliseconds, so single pairs would drown in overhead.
