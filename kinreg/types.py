@@ -150,8 +150,9 @@ class Scan:
 class Plane:
     """A planar patch detected in one scan, in that scan's frame: ``normal . x = d_m``.
 
-    ``normal`` is unit and points towards the scanner that saw it (the scan origin), so
-    ``d_m < 0`` for a plane not through the origin. The normal has two degrees of freedom: its
+    ``normal`` is unit and points towards the scanner that saw it: the scan origin, so ``d_m < 0``
+    for a plane not through it, unless the sensor saw the plane from its other side in part of the
+    window (:func:`kinreg.estimate.planes.facing_the_sensor`). The normal has two degrees of freedom: its
     uncertainty is expressed as small rotations along the two tangent directions ``basis_uv``
     (rows, unit, orthogonal to the normal and each other), and ``cov_uvd`` is the 3x3 covariance
     of (rotation towards u [rad], rotation towards v [rad], d [m]), i.e. a perturbed plane is

@@ -35,8 +35,9 @@ Every scan (static or quasi-static) is searched for planar patches in its own fr
 
 The normal points towards the scan origin: ``n . (0 - centroid) > 0``, so ``d < 0``. For a
 quasi-static scan the origin is the virtual scanner centre; a surface seen only from a part of
-the window on its other side (walking through a door) would be oriented wrongly, which needs the
-per-point sensor positions, not in :class:`~kinreg.types.Scan`. Planes are numbered by
+the window on its other side (walking through a door: the wall's far face, seen from the room
+before the door) is oriented towards the sensor that saw it once the sensor's positions are known
+(:func:`facing_the_sensor`), so that the two faces of a wall keep opposite normals. Planes are numbered by
 decreasing inlier count. The result depends only on the points and the configuration (the seed
 included), not on timing or threads.
 
@@ -63,6 +64,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -773,3 +775,30 @@ def _split_patches(rows: FloatArray, normal: FloatArray, config: PlanesConfig) -
         idx = np.flatnonzero(point_label == lab)
         patches.append(_Patch(idx, flat[idx], shape))
     return patches
+
+
+def facing_the_sensor(planes: tuple[Plane, ...], band_m: float) -> tuple[Plane, ...]:
+    """The planes with each normal towards the sensor that saw it (METHOD.md section 4): where a
+    plane's mean sensor position (``sensor_xyz``, the mean of the sensor's positions at its points'
+    times) lies more than ``band_m`` behind it, the plane is turned round. Detection orients a
+    plane towards the scan origin, the sensor at the window's centre time; a window that passes
+    through a door sees the wall's face on the side it came from, the origin is beyond the wall,
+    and the two faces of the wall (its thickness apart) would be one direction and match each
+    other. Every point is seen from the plane's visible side, so their mean sensor position is on
+    it too; within the band of the plane, the origin keeps the decision.
+
+    Turning a plane round keeps it right-handed: ``n' = -n``, ``v' = -v``, ``d' = -d``; a
+    perturbation (a, b, e) of the plane is (-a, b, -e) of the turned one, and the time and sensor
+    slopes along v change sign."""
+    out = []
+    for p in planes:
+        if p.sensor_xyz is None or not float(p.normal @ p.sensor_xyz) - p.d_m < -band_m:
+            out.append(p)
+            continue
+        flip = np.diag([-1.0, 1.0, -1.0])
+        slope_u, slope_v = p.t_slope_s_per_m
+        out.append(replace(
+            p, normal=-p.normal, d_m=-p.d_m, basis_uv=np.array([p.basis_uv[0], -p.basis_uv[1]]),
+            cov_uvd=flip @ p.cov_uvd @ flip, t_slope_s_per_m=(slope_u, -slope_v),
+            sensor_slope=None if p.sensor_slope is None else p.sensor_slope * np.array([1.0, -1.0])))
+    return tuple(out)

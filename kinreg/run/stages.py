@@ -36,7 +36,7 @@ from kinreg.estimate.drift import (
 )
 from kinreg.estimate.network import Network, link_pairs, station_pairs
 from kinreg.estimate.plane_nodes import plane_clusters
-from kinreg.estimate.planes import detect_planes
+from kinreg.estimate.planes import detect_planes, facing_the_sensor
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import SensorTrack, sensor_track
 from kinreg.estimate.snooping import misfit_text, trajectory_misfits
@@ -82,7 +82,7 @@ def scan_planes(task: PlanesTask) -> tuple[Station, tuple[Plane, ...]]:
     tau = float("nan")
     if scan.stamps_s is not None:
         times = plane_time_offsets(scan.points_xyz, scan.stamps_s, scan.t_s, found, config.refit_distance_m, track)
-        found = times.applied(found)
+        found = facing_the_sensor(times.applied(found), config.refit_distance_m)
         tau = rms_time_offset(times.offsets)
     station = Station(scan.scan_id, scan.name, scan.kind, scan.t_s, scan.t_start_s, scan.t_end_s,
                       scan.T_obj_scan, len(scan), tau)
