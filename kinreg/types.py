@@ -338,6 +338,9 @@ class ObservationTest:
     # covariance (6x6, twist of its relative pose in station i's frame) of the adjusted relative
     # pose it observes: how well the network itself determines what this observation measures
     cov_adjusted: FloatArray | None = field(default=None, repr=False, compare=False)
+    # its residual (6,) after the adjustment: for a pose observation the translation [m] and the
+    # rotation vector [rad] between what it observes and what the network says
+    residual: FloatArray | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True, eq=False)

@@ -5,16 +5,18 @@ one while the longer windows' did not are not kept."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 from clirunner import run_cli
 from test_bad_inputs import message_lines, result_files
 
 from kinreg.config import load_config
-from kinreg.estimate.snooping import chi2_quantile, trajectory_misfits
+from kinreg.estimate.snooping import chi2_quantile, trajectory_misfits, wrong_match_misfits
 from kinreg.types import ObservationKind, ObservationTest
 
 SAMPLE = Path(__file__).parent.parent / "sample_data"
@@ -38,6 +40,24 @@ def test_the_misfits_are_the_trajectory_links_beyond_their_model_over_their_numb
     assert trajectory_misfits([], 0.001) == []
 
 
+def _moved(tests, pair, residual):
+    """The trajectory test of ``pair`` among ``tests``, with ``residual`` as its residual."""
+    return [dataclasses.replace(t, residual=np.asarray(residual, dtype=float)) for t in tests
+            if t.kind is ObservationKind.TRAJECTORY and (t.i, t.j) == pair]
+
+
+def test_a_wrong_match_moves_a_station_by_the_separation_of_two_distinct_planes():
+    """Two planes closer than [matching] coplanar_offset_m (or coplanar_angle_deg) are one plane:
+    a wrong match moves a station by at least that; a smaller misfit is the trajectory's model."""
+    trajectory = ObservationKind.TRAJECTORY
+    far = dataclasses.replace(_test(trajectory, 0, 100.0), residual=np.array([0.0, 0.02, 0.0, 0.0, 0.0, 0.0]))
+    near = dataclasses.replace(_test(trajectory, 1, 100.0), residual=np.array([0.012, 0.012, 0.0, 0.0, 0.0, 0.0]))
+    turned = dataclasses.replace(_test(trajectory, 2, 100.0), residual=np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.018]))
+    unknown = _test(trajectory, 3, 100.0)
+    assert [t.i for t in wrong_match_misfits([far, near, turned, unknown], 0.02, 1.0)] == [0, 2, 3]
+    assert wrong_match_misfits([near], 0.02, 1.0) == [] and wrong_match_misfits([near], 0.015, 1.0) == [near]
+
+
 def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_failed(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -49,15 +69,24 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
     assert code == 0, err
     report = json.loads((out / "report.json").read_text())
     assert report["adjustment"]["trajectory_misfits"] == []  # the sample's network agrees with its trajectory
-    # The final network's trajectory link 2-3 at 9 sigma, as a wrong match would leave it.
-    monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: [
-        t for t in tests if t.kind is ObservationKind.TRAJECTORY and (t.i, t.j) == (2, 3)])
+    # The final network's trajectory link 2-3 beyond its model by 1.5 mm: the model's misfit, a
+    # warning in the report, not a wrong match.
+    monkeypatch.setattr(stages, "trajectory_misfits",
+                        lambda tests, alpha: _moved(tests, (2, 3), [0.0015, 0, 0, 0, 0, 0]))
+    code, _, err = run_cli([*args, "--resume"], capsys)
+    assert code == 0, err
+    warned = json.loads((out / "report.json").read_text())["adjustment"]["trajectory_misfits"]
+    assert [m["stations"] for m in warned] == [[2, 3]] and math.isclose(warned[0]["moved_mm"], 1.5)
+    html = (out / "report.html").read_text()
+    assert "the trajectory disagrees with the network between 1 pair(s)" in html and "1.5 mm" in html
+    # As a wrong match would leave it: 0.2 m, a wall's thickness.
+    monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: _moved(tests, (2, 3), [0, 0.2, 0, 0, 0, 0]))
     code, _, err = run_cli([*args, "--resume"], capsys)
     lines = message_lines(err)
     assert code == 1 and "Traceback" not in err
     assert len(lines) == 1, err
     assert "the trajectory disagrees with the adjusted network between 1 pair(s) of consecutive stations: 2-3" \
-        in lines[0]
+        in lines[0] and "200.0 mm" in lines[0]
     assert "nothing was written" in lines[0]
     assert result_files(out) == []  # the earlier run's outputs are gone too
     (tmp_path / "report.toml").write_text('[block]\non_failure = "report"\n')
@@ -79,13 +108,15 @@ def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Pa
 
     write_run(simulate_run(SimulationConfig(seed=5, duration_s=24.0)), tmp_path / "data")
     inputs = ProcessInputs(tmp_path / "data" / "run_trajectory.txt", tmp_path / "data" / "run_cloud.laz")
-    (tmp_path / "again.toml").write_text("[slicing]\nmax_smear_share = 1e-9\nmin_window_s = 3.0\n")  # sliced again
+    (tmp_path / "again.toml").write_text(  # sliced again
+        "[slicing]\nmax_smear_share = 1e-9\nmin_window_s = 3.0\n")
     (tmp_path / "once.toml").write_text("[slicing]\nadaptive = false\n")
     once = process(inputs, tmp_path / "once", load_config(tmp_path / "once.toml"))
     assert once.n_stations == 4  # 6 s windows; 3 s windows give 8
     # a misfit in every network of more than four stations: the 3 s windows'
     monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: [
-        t for t in tests if t.kind is ObservationKind.TRAJECTORY and t.j >= 4])
+        dataclasses.replace(t, residual=np.array([0.05, 0, 0, 0, 0, 0])) for t in tests
+        if t.kind is ObservationKind.TRAJECTORY and t.j >= 4])
     kept = process(inputs, tmp_path / "kept", load_config(tmp_path / "again.toml"))
     assert kept.n_stations == 4
     for name in ("stations.csv", "trajectory_corrected.txt", "corrected.laz"):

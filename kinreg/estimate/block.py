@@ -751,7 +751,7 @@ def _test_observations(state, a, links, fixed, free_index, factor, linearised=No
     index = a.idx[keep]
     tests = ObservationTests(index, a.kinds[keep], links.i[index], links.j[index], statistic[keep], dof[keep],
                              r_k[keep], normalised[keep], np.zeros(len(index), dtype=bool), vtpv[keep],
-                             least[keep], cov_adjusted[keep])
+                             least[keep], cov_adjusted[keep], e[keep])  # a copy: e may be written into later
     n_stations = int(np.count_nonzero(~fixed))
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag[:n_stations]
 
@@ -769,5 +769,6 @@ def _with_rejected(tests: ObservationTests, rejected: list[int], links: _Links) 
         np.concatenate([tests.statistic, nan])[order], np.concatenate([tests.dof, links.rank[k]])[order],
         np.concatenate([tests.redundancy, np.zeros(len(k))])[order], np.concatenate([tests.normalised, nan])[order],
         np.concatenate([tests.rejected, np.ones(len(k), dtype=bool)])[order],
-        np.concatenate([tests.vtpv, nan])[order], np.concatenate([tests.min_redundancy, nan])[order], cov[order])
+        np.concatenate([tests.vtpv, nan])[order], np.concatenate([tests.min_redundancy, nan])[order], cov[order],
+        None if tests.residual is None else np.concatenate([tests.residual, np.full((len(k), 6), np.nan)])[order])
     return merged

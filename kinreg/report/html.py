@@ -160,7 +160,8 @@ def _verdict(report: dict[str, Any]) -> str:
             f"redundancy {_fmt(adj.get('redundancy'), 0)}) \u00b7 {len(rejected)} of {_count(n_obs)} "
             f"observations rejected \u00b7 datum: {adj.get('datum', DASH)}")
     if misfits:
-        worst = ", ".join(f"{m['stations'][0]}-{m['stations'][1]} ({_fmt(m['normalised'], 0)} \u03c3)"
+        worst = ", ".join(f"{m['stations'][0]}-{m['stations'][1]} ({_fmt(m['normalised'], 0)} \u03c3"
+                          + (f", {_fmt(m['moved_mm'], 1)} mm)" if m.get("moved_mm") is not None else ")")
                           for m in misfits[:5])
         text += (f" \u00b7 the trajectory disagrees with the network between {len(misfits)} pair(s) of "
                  f"consecutive stations ({worst}): check the links there (a wrong plane match or a jump)")

@@ -19,7 +19,7 @@ from kinreg.estimate.snooping import trajectory_misfits
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.tables import stations_table, write_text
-from kinreg.types import BlockResult, LinkStatus, Plane, ScanKind, TrajectoryJump
+from kinreg.types import BlockResult, LinkStatus, ObservationTest, Plane, ScanKind, TrajectoryJump
 
 REPORT_SCHEMA_VERSION = 1
 
@@ -79,9 +79,12 @@ def build_report(
     timings_s: dict[str, float],
     trajectory_plot: dict[str, list[float]],
     cloud_views: dict[str, Any] | None = None,
+    misfits: Sequence[ObservationTest] | None = None,
 ) -> dict[str, Any]:
     """The content of ``report.json``: ``jumps`` and ``corrections`` one per run, ``timings_s``
-    the stage timings (the dictionary itself: a stage timed after this call still shows)."""
+    the stage timings (the dictionary itself: a stage timed after this call still shows);
+    ``misfits`` the trajectory's links beyond their model where found already (else found here,
+    :func:`~kinreg.estimate.snooping.trajectory_misfits`)."""
     stations, links, datum = network.stations, network.links, network.datum.description
     shift_m, rotation_rad = (np.concatenate(parts) for parts in zip(*(c.magnitude() for c in corrections), strict=True))
     correction_mm, correction_mdeg = shift_m * 1000.0, np.degrees(rotation_rad) * 1000.0
@@ -127,8 +130,9 @@ def build_report(
             "rejected_observations": rejected,
             "normalised_residuals": tests_by_kind,
             # the trajectory's links beyond their model (never rejected: a wrong match or a jump)
-            "trajectory_misfits": [{"stations": [int(t.i), int(t.j)], "normalised": float(t.normalised)}
-                                   for t in trajectory_misfits(result.tests, alpha)],
+            "trajectory_misfits": [{"stations": [int(t.i), int(t.j)], "normalised": float(t.normalised),
+                                    **_residual_figures(t)}
+                                   for t in (trajectory_misfits(result.tests, alpha) if misfits is None else misfits)],
         },
         "stations": {
             "n": len(stations),
@@ -233,3 +237,13 @@ def _stats(values: FloatArray) -> dict[str, float]:
     if len(v) == 0:
         return {"rms": math.nan, "mean": math.nan, "max": math.nan}
     return {"rms": float(np.sqrt(np.mean(v**2))), "mean": float(np.mean(v)), "max": float(np.max(v))}
+
+
+def _residual_figures(test: ObservationTest) -> dict[str, float | None]:
+    """How far a pose observation's residual moves [mm] and turns [mdeg] a station (None where
+    unknown)."""
+    e = test.residual
+    if e is None or not np.all(np.isfinite(e)):
+        return {"moved_mm": None, "turned_mdeg": None}
+    return {"moved_mm": 1000.0 * float(np.linalg.norm(e[:3])),
+            "turned_mdeg": 1000.0 * float(np.degrees(np.linalg.norm(e[3:])))}

@@ -295,7 +295,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
             corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
             alpha=config.block.alpha, timings_s=clock.timings_s,
             trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
-            cloud_views=views.finish(out))  # "cloud" and "crs"; the PNGs go straight into out/figures
+            cloud_views=views.finish(out),  # "cloud" and "crs"; the PNGs go straight into out/figures
+            misfits=adjusted.misfits)
         report.update(points_report(adjusted.network, adjusted.result, adjusted.rates, control, check,
                                     kinematic.trajectories,
                                     corrections, config))
@@ -329,20 +330,21 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
     (:func:`~kinreg.estimate.slicing.shorter_window_s`), once more with shorter windows
     (:func:`_with_shorter_windows`). Returns the result and the configuration it was made with;
     raises :class:`AdjustmentFailedError` (after :func:`fail_adjustment`) where the trajectory
-    disagrees with that result's network
-    (:func:`~kinreg.estimate.snooping.trajectory_misfits`)."""
+    disagrees with that result's network as a wrong plane match would
+    (:func:`~kinreg.estimate.snooping.wrong_match_misfits`)."""
     est = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
                            control)
     chosen = _with_shorter_windows(stack, folder, inputs, trajectories, references, config, progress, executor,
                                    clock, control, est)
     if chosen is not None:
         est, config = chosen
-    # The trajectory's own links are never rejected: beyond their model they show plane links that
-    # agree on a wrong match no test found (or a jump the detector missed). The global test can
-    # pass all the same, and the stations be 30-60 mm RMS off (held-out runs, world drift 0.26 m).
-    if est.adjusted.misfits:
+    # The trajectory's own links are never rejected: beyond their model, by as much as two distinct
+    # planes lie apart, they show plane links that agree on a wrong match no test found (or a jump
+    # the detector missed). The global test can pass all the same, and the stations be 30-60 mm
+    # RMS off (held-out runs, world drift 0.26 m). A smaller misfit stays a warning in the report.
+    if est.adjusted.wrong_matches:
         failed = dataclasses.replace(est.adjusted.result, failure=(
-            f"the trajectory disagrees with the adjusted network between {misfit_text(est.adjusted.misfits)}, "
+            f"the trajectory disagrees with the adjusted network between {misfit_text(est.adjusted.wrong_matches)}, "
             "beyond its model: plane links that agree on a wrong match, or a jump in the trajectory"))
         fail_adjustment(AdjustmentFailedError(checked_reason(failed), failed), est.adjusted.network, config, folder,
                         inputs_report(inputs.runs, est.kinematic.trajectories, est.sliced, inputs.static,
@@ -357,7 +359,7 @@ def _with_shorter_windows(stack: contextlib.ExitStack, folder: RunCache, inputs:
     """Where the drift measured by ``est`` smears the planes of its windows
     (:func:`~kinreg.estimate.slicing.shorter_window_s`): the network sliced again with shorter
     windows and its configuration, or ``est``'s again where the shorter windows' network shows a
-    trajectory misfit ``est``'s does not. ``None``: ``est`` stands."""
+    trajectory misfit of a wrong match that ``est``'s does not. ``None``: ``est`` stands."""
     window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing)
     if window is None:
         return None
@@ -370,10 +372,10 @@ def _with_shorter_windows(stack: contextlib.ExitStack, folder: RunCache, inputs:
     # windows' network had no such misfit, it is the better result (a held-out run, world drift
     # 0.26 m: 3 s windows ended 63 mm RMS off with the global test passed, 7 sigma between the
     # trajectory and the network; its 6 s windows were within 5 mm).
-    if again.adjusted.misfits and not est.adjusted.misfits:
+    if again.adjusted.wrong_matches and not est.adjusted.wrong_matches:
         log.warning("with %.1f s windows the trajectory disagrees with the adjusted network between %s "
                     "(a wrong plane match the tests did not find): kept the %.1f s windows",
-                    window, misfit_text(again.adjusted.misfits), config.slicing.window_s)
+                    window, misfit_text(again.adjusted.wrong_matches), config.slicing.window_s)
         # the first slicing's spill made way for the second's: sliced again, the rest from the cache
         return estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
                                 control, decoded=[slices.records() for slices in again.sliced]), config

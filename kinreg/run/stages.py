@@ -39,7 +39,7 @@ from kinreg.estimate.plane_nodes import plane_clusters
 from kinreg.estimate.planes import detect_planes, facing_the_sensor
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import SensorTrack, sensor_track
-from kinreg.estimate.snooping import misfit_text, trajectory_misfits
+from kinreg.estimate.snooping import misfit_text, trajectory_misfits, wrong_match_misfits
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.io.checks import check_inputs
 from kinreg.io.reference_planes import ReferencePlanes
@@ -218,6 +218,9 @@ class AdjustedNetwork:
     rates: DriftRates
     # the trajectory's links beyond their model (kinreg.estimate.snooping.trajectory_misfits), worst first
     misfits: tuple[ObservationTest, ...] = ()
+    # those of them a wrong plane match can explain (kinreg.estimate.snooping.wrong_match_misfits):
+    # such a network is no result
+    wrong_matches: tuple[ObservationTest, ...] = ()
 
 
 def adjust_with_measured_drift(
@@ -292,9 +295,10 @@ def adjust_with_measured_drift(
             usable, (config.planes.min_sigma_angle_rad, config.planes.min_sigma_d_m)))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     misfits = _warn_trajectory_misfits(result, config.block.alpha)
+    wrong = wrong_match_misfits(misfits, config.matching.coplanar_offset_m, config.matching.coplanar_angle_deg)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
-    return AdjustedNetwork(network, result, rates, tuple(misfits))
+    return AdjustedNetwork(network, result, rates, tuple(misfits), tuple(wrong))
 
 
 def _correlation_of_deskewed(network: Network, result: BlockResult, rates: DriftRates, prior: DriftRates,
