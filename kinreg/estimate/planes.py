@@ -36,9 +36,9 @@ Every scan (static or quasi-static) is searched for planar patches in its own fr
 The normal points towards the scan origin: ``n . (0 - centroid) > 0``, so ``d < 0``. For a
 quasi-static scan the origin is the virtual scanner centre; a surface seen only from a part of
 the window on its other side (walking through a door: the wall's far face, seen from the room
-before the door) is oriented towards the sensor that saw it once the sensor's positions are known
-(:func:`facing_the_sensor`), so that the two faces of a wall keep opposite normals. Planes are numbered by
-decreasing inlier count. The result depends only on the points and the configuration (the seed
+before the door) is turned towards the sensor that saw it once the sensor's positions are known
+(:func:`facing_the_sensor`), so that the two faces of a wall keep opposite normals. Planes are
+numbered by decreasing inlier count. The result depends only on the points and the configuration (the seed
 included), not on timing or threads.
 
 Covariance (:func:`plane_covariance`). With the centroid ``c``, the scatter-matrix eigenvectors
@@ -791,11 +791,11 @@ def facing_the_sensor(planes: tuple[Plane, ...], band_m: float) -> tuple[Plane, 
     perturbation (a, b, e) of the plane is (-a, b, -e) of the turned one, and the time and sensor
     slopes along v change sign."""
     out = []
+    flip = np.diag([-1.0, 1.0, -1.0])
     for p in planes:
         if p.sensor_xyz is None or not float(p.normal @ p.sensor_xyz) - p.d_m < -band_m:
             out.append(p)
             continue
-        flip = np.diag([-1.0, 1.0, -1.0])
         slope_u, slope_v = p.t_slope_s_per_m
         out.append(replace(
             p, normal=-p.normal, d_m=-p.d_m, basis_uv=np.array([p.basis_uv[0], -p.basis_uv[1]]),

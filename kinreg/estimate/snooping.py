@@ -211,7 +211,7 @@ def wrong_match_misfits(misfits: Sequence[ObservationTest], offset_m: float, ang
     (``angle_deg``) at which two planes are distinct physical planes ([matching] coplanar_offset_m,
     coplanar_angle_deg). Matching two planes that are not one moves the station by their
     separation; a smaller misfit is the trajectory's model, a millimetre off where the drift model
-    fits the run less well (a sample run with static scans, GNSS/INS-like drift: 1.6 mm at 2.4
+    fits the run less well (a sample run with static scans, GNSS/INS-like drift: 0.76 mm at 2.4
     sigma, the stations 0.75 mm RMS from the truth). A misfit without its residual counts."""
     def separated(e: FloatArray | None) -> bool:
         return (e is None or not bool(np.all(np.isfinite(e))) or float(np.linalg.norm(e[:3])) >= offset_m

@@ -52,7 +52,7 @@ from kinreg.run.liveness import process_alive
 log = logging.getLogger(__name__)
 
 # Bump when a stored layout or the meaning of a key part changes (old entries are then ignored).
-CACHE_SCHEMA_VERSION = 3
+CACHE_SCHEMA_VERSION = 4
 
 Arrays = dict[str, np.ndarray]  # what a cache entry holds
 
