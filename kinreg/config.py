@@ -65,9 +65,12 @@ class SlicingConfig:
     # Windows that stay quasi-static (duration mode): after the first adjustment, where the drift
     # measured over half a window (the smear) exceeds this share of the planes' noise, the run is
     # sliced again with windows short enough, not below min_window_s (plane detection needs a
-    # full sweep of the head).
+    # full sweep of the head). Between max_smear_share and shown_smear_share of the noise, only
+    # where the first network's scan-plane offsets show the smear (their residuals reject their
+    # model: an offset kind's chi-square test at [block] alpha); beyond it in any case.
     adaptive: bool = True
     max_smear_share: float = 0.5
+    shown_smear_share: float = 1.0
     min_window_s: float = 2.0
 
 

@@ -172,7 +172,8 @@ def test_process_sliced_again_decodes_the_cloud_once(tmp_path: Path, monkeypatch
     real = LasCloudReader._decoded_arrays
     monkeypatch.setattr(LasCloudReader, "_decoded_arrays",
                         lambda self, *a, **k: decodes.append(1) or real(self, *a, **k))
-    again = "[slicing]\nmax_smear_share = 1e-9\nmin_window_s = 3.0\n"  # any smear: sliced again with 3 s windows
+    # any smear: sliced again with 3 s windows
+    again = "[slicing]\nmax_smear_share = 1e-9\nshown_smear_share = 1e-9\nmin_window_s = 3.0\n"
     (tmp_path / "off.toml").write_text(again + "keep_decoded = false\n")
     (tmp_path / "on.toml").write_text(again)
     off = process(inputs, tmp_path / "off", load_config(tmp_path / "off.toml"))

@@ -108,7 +108,8 @@ def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Pa
 
     write_run(simulate_run(SimulationConfig(seed=5, duration_s=24.0)), tmp_path / "data")
     inputs = ProcessInputs(tmp_path / "data" / "run_trajectory.txt", tmp_path / "data" / "run_cloud.laz")
-    (tmp_path / "again.toml").write_text("[slicing]\nmax_smear_share = 1e-9\nmin_window_s = 3.0\n")  # sliced again
+    (tmp_path / "again.toml").write_text(  # sliced again
+        "[slicing]\nmax_smear_share = 1e-9\nshown_smear_share = 1e-9\nmin_window_s = 3.0\n")
     (tmp_path / "once.toml").write_text("[slicing]\nadaptive = false\n")
     once = process(inputs, tmp_path / "once", load_config(tmp_path / "once.toml"))
     assert once.n_stations == 4  # 6 s windows; 3 s windows give 8

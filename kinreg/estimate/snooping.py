@@ -273,6 +273,24 @@ def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float
 MAX_WEIGHT_GAIN = 25.0
 
 
+def models_rejected(tests: Sequence[ObservationTest], components: dict[str, float], kinds: Sequence[str],
+                    alpha: float) -> dict[str, float]:
+    """The ``kinds`` whose residuals reject their a-priori model, with their variance factor
+    against it: the group's weighted squares under the a-priori weights (its final ones times its
+    variance component, ``components``) over its redundancy r, beyond chi-square(1 - alpha, r) / r.
+    Kinds with a redundancy under 5 are not tested (as :func:`variance_components`)."""
+    out = {}
+    for kind in kinds:
+        group = [t for t in tests if t.kind.value == kind and not t.rejected and np.isfinite(t.vtpv)]
+        r = float(sum(t.redundancy for t in group))
+        if r < 5:
+            continue
+        factor = components.get(kind, 1.0) * float(sum(t.vtpv for t in group)) / r
+        if factor > chi2_quantile(1.0 - alpha, r) / r:
+            out[kind] = factor
+    return out
+
+
 def variance_components(tests: ObservationTests | Sequence[ObservationTest], weights: dict[str, float],
                          alpha: float, may_lower: frozenset[str] = frozenset()) -> dict[str, float]:
     """Förstner's estimate per observation kind: sigma_g^2 = (e^T P e)_g / r_g with the current

@@ -39,7 +39,7 @@ from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import shorter_window_s, window_smear_m
-from kinreg.estimate.snooping import misfit_text
+from kinreg.estimate.snooping import misfit_text, models_rejected
 from kinreg.io.atomic import check_writable_target
 from kinreg.io.checks import check_inputs, time_filter
 from kinreg.io.cloud import open_cloud
@@ -94,6 +94,7 @@ from kinreg.run.stages import (
 )
 from kinreg.types import (
     BlockResult,
+    ObservationKind,
     Plane,
     SlicingSummary,
     Station,
@@ -352,19 +353,29 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
     return est, config
 
 
+# The scan planes' offsets, which a window's smear moves first (:func:`_with_shorter_windows`).
+_OFFSET_KINDS = tuple(k.value for k in (ObservationKind.PLANE_OFFSET, ObservationKind.PLANE_OFFSET_FLOOR,
+                                        ObservationKind.PLANE_OFFSET_FLOOR_LEVEL))
+
+
 def _with_shorter_windows(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                           trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
                           progress: Progress, executor: ExecutorContext, clock: StageClock, control: Assignment | None,
                           est: EstimatedNetwork) -> tuple[EstimatedNetwork, KinregConfig] | None:
     """Where the drift measured by ``est`` smears the planes of its windows
-    (:func:`~kinreg.estimate.slicing.shorter_window_s`): the network sliced again with shorter
+    (:func:`~kinreg.estimate.slicing.shorter_window_s`; whether their offsets show it:
+    :func:`~kinreg.estimate.snooping.models_rejected`): the network sliced again with shorter
     windows and its configuration, or ``est``'s again where the shorter windows' network shows a
     trajectory misfit of a wrong match that ``est``'s does not. ``None``: ``est`` stands."""
-    window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing)
+    result = est.adjusted.result
+    showing = models_rejected(result.tests, result.variance_components, _OFFSET_KINDS, config.block.alpha)
+    window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing, bool(showing))
     if window is None:
         return None
-    log.warning("the drift smears the planes by %.1f mm over half a window (median): sliced again with %.1f s "
-                "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), window, config.slicing.window_s)
+    shown = "".join(f", {kind} {factor:.1f}x its model" for kind, factor in showing.items())
+    log.warning("the drift smears the planes by %.1f mm over half a window (median%s): sliced again with %.1f s "
+                "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), shown, window,
+                config.slicing.window_s)
     again = estimate_network(stack, folder, inputs, trajectories, references, with_window(config, window), progress,
                              executor, clock, control, decoded=[slices.records() for slices in est.sliced])
     # Shorter windows hold fewer planes each, and their links can agree on a wrong match that no
