@@ -79,6 +79,7 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
     assert [m["stations"] for m in warned] == [[2, 3]] and math.isclose(warned[0]["moved_mm"], 1.5)
     html = (out / "report.html").read_text()
     assert "the trajectory disagrees with the network between 1 pair(s)" in html and "1.5 mm" in html
+    assert "by less than a wrong plane match would" in html
     # As a wrong match would leave it: 0.2 m, a wall's thickness.
     monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: _moved(tests, (2, 3), [0, 0.2, 0, 0, 0, 0]))
     code, _, err = run_cli([*args, "--resume"], capsys)

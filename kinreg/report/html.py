@@ -164,7 +164,8 @@ def _verdict(report: dict[str, Any]) -> str:
                           + (f", {_fmt(m['moved_mm'], 1)} mm)" if m.get("moved_mm") is not None else ")")
                           for m in misfits[:5])
         text += (f" \u00b7 the trajectory disagrees with the network between {len(misfits)} pair(s) of "
-                 f"consecutive stations ({worst}): check the links there (a wrong plane match or a jump)")
+                 f"consecutive stations, {worst}, by less than a wrong plane match would: the stations there "
+                 "may be less accurate than their sigmas say")
     return _tag("div", _esc(text), class_=f"verdict {level}")
 
 

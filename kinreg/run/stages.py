@@ -294,8 +294,7 @@ def adjust_with_measured_drift(
         network = replace(network, planes=tuple(used_planes), plane_nodes=plane_clusters(
             usable, (config.planes.min_sigma_angle_rad, config.planes.min_sigma_d_m)))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
-    misfits = _warn_trajectory_misfits(result, config.block.alpha)
-    wrong = wrong_match_misfits(misfits, config.matching.coplanar_offset_m, config.matching.coplanar_angle_deg)
+    misfits, wrong = _warn_trajectory_misfits(result, config.block.alpha, config.matching)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
     return AdjustedNetwork(network, result, rates, tuple(misfits), tuple(wrong))
@@ -341,14 +340,21 @@ def _settled_coupling(tried: Sequence[tuple[float, float]]) -> float:
 
 
 
-def _warn_trajectory_misfits(result: BlockResult, alpha: float) -> list[ObservationTest]:
+def _warn_trajectory_misfits(result: BlockResult, alpha: float,
+                             matching: MatchingConfig) -> tuple[list[ObservationTest], list[ObservationTest]]:
     """Say where the trajectory's own links disagree with the adjusted network beyond their model
-    (:func:`~kinreg.estimate.snooping.trajectory_misfits`); returns them."""
+    (:func:`~kinreg.estimate.snooping.trajectory_misfits`); returns them and those as large as a
+    wrong plane match makes them (:func:`~kinreg.estimate.snooping.wrong_match_misfits`)."""
     misfits = trajectory_misfits(result.tests, alpha)
-    if misfits:
+    wrong = wrong_match_misfits(misfits, matching.coplanar_offset_m, matching.coplanar_angle_deg)
+    if wrong:
         log.warning("the trajectory disagrees with the adjusted network between %s. Check the links there "
-                    "(a wrong plane match or a jump)", misfit_text(misfits))
-    return misfits
+                    "(a wrong plane match or a jump)", misfit_text(wrong))
+    elif misfits:
+        log.warning("the trajectory disagrees with the adjusted network between %s, by less than a wrong plane "
+                    "match would: the drift model fits the run less well there, and those stations may be less "
+                    "accurate than their sigmas say", misfit_text(misfits))
+    return misfits, wrong
 
 
 def _linked_pairs(links: Sequence[Link]) -> set[tuple[int, int]]:
