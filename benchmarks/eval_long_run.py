@@ -78,6 +78,7 @@ def main() -> None:
                "global_test_passed": summary.global_test_passed, "process_wall_s": wall,
                "timings_s": summary.timings_s,
                **station_errors(data / f"out_{label}" / "stations.csv", truth, drifted)}
+        row.pop("rigid_fit")  # the fit itself (arrays), not a figure
         results.append(row)
         print(json.dumps({k: row[k] for k in ("label", "links", "sigma0", "timings_s",
                                                 "position_error_after_rigid_fit_mm", "normalised_error_rms_per_axis")}),
