@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from kinreg.config import BlockConfig
+from kinreg.config import BlockConfig, MatchingConfig
 from kinreg.estimate.block import adjust_block
 from kinreg.estimate.drift import DriftRates, estimate_drift_rates
 from kinreg.estimate.network import block_observations
@@ -176,12 +176,21 @@ def test_a_trajectory_link_far_off_its_model_is_named(caplog):
 
     quiet = SimpleNamespace(tests=[test(k, 6.0) for k in range(40)])
     with caplog.at_level(logging.WARNING):
-        _warn_trajectory_misfits(quiet, 0.001)
+        assert _warn_trajectory_misfits(quiet, 0.001, MatchingConfig()) == ([], [])
     assert not caplog.records
     loud = SimpleNamespace(tests=[test(k, 6.0) for k in range(40)] + [test(17, 6 * 81.0)])
     with caplog.at_level(logging.WARNING):
-        _warn_trajectory_misfits(loud, 0.001)
-    assert "17-18 (9 sigma)" in caplog.text
+        misfits, wrong = _warn_trajectory_misfits(loud, 0.001, MatchingConfig())
+    assert [t.i for t in misfits] == [t.i for t in wrong] == [17]  # no residual known: it may be a wrong match
+    assert "17-18 (9 sigma)" in caplog.text and "Check the links there" in caplog.text
+    caplog.clear()
+    # 3 mm off: less than two distinct planes lie apart, the drift model's misfit, not a wrong match
+    small = replace(test(17, 6 * 81.0), residual=np.array([0.003, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    with caplog.at_level(logging.WARNING):
+        misfits, wrong = _warn_trajectory_misfits(SimpleNamespace(tests=[*quiet.tests, small]), 0.001,
+                                                  MatchingConfig())
+    assert [t.i for t in misfits] == [17] and wrong == []
+    assert "17-18 (9 sigma, 3.0 mm), by less than a wrong plane match would" in caplog.text
 
 
 def test_a_coupled_attitude_error_is_taken_out_of_the_planes():
