@@ -213,11 +213,20 @@ def wrong_match_misfits(misfits: Sequence[ObservationTest], offset_m: float, ang
     separation; a smaller misfit is the trajectory's model, a millimetre off where the drift model
     fits the run less well (a sample run with static scans, GNSS/INS-like drift: 0.76 mm at 2.4
     sigma, the stations 0.75 mm RMS from the truth). A misfit without its residual counts."""
-    def separated(e: FloatArray | None) -> bool:
-        return (e is None or not bool(np.all(np.isfinite(e))) or float(np.linalg.norm(e[:3])) >= offset_m
-                or float(np.linalg.norm(e[3:])) >= np.radians(angle_deg))
+    def separated(t: ObservationTest) -> bool:
+        size = residual_size(t)
+        return size is None or size[0] >= offset_m or size[1] >= np.radians(angle_deg)
 
-    return [t for t in misfits if separated(t.residual)]
+    return [t for t in misfits if separated(t)]
+
+
+def residual_size(test: ObservationTest) -> tuple[float, float] | None:
+    """How far a pose observation's residual moves [m] and turns [rad] a station; None where its
+    residual is unknown."""
+    e = test.residual
+    if e is None or not np.all(np.isfinite(e)):
+        return None
+    return float(np.linalg.norm(e[:3])), float(np.linalg.norm(e[3:]))
 
 
 def misfit_text(misfits: Sequence[ObservationTest]) -> str:
@@ -228,9 +237,8 @@ def misfit_text(misfits: Sequence[ObservationTest]) -> str:
 
 def _moved_text(test: ObservationTest) -> str:
     """``, 12.3 mm`` (how far its residual moves a station), or nothing where unknown."""
-    if test.residual is None or not np.all(np.isfinite(test.residual[:3])):
-        return ""
-    return f", {1000.0 * float(np.linalg.norm(test.residual[:3])):.1f} mm"
+    size = residual_size(test)
+    return "" if size is None else f", {1000.0 * size[0]:.1f} mm"
 
 
 def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float, budget: int) -> list[int]:
@@ -279,13 +287,17 @@ def models_rejected(tests: Sequence[ObservationTest], components: dict[str, floa
     against it: the group's weighted squares under the a-priori weights (its final ones times its
     variance component, ``components``) over its redundancy r, beyond chi-square(1 - alpha, r) / r.
     Kinds with a redundancy under 5 are not tested (as :func:`variance_components`)."""
+    sums = {kind: [0.0, 0.0] for kind in kinds}  # redundancy, weighted squares: one pass over the tests
+    for t in tests:
+        group = sums.get(t.kind.value)
+        if group is not None and not t.rejected and np.isfinite(t.vtpv):
+            group[0] += t.redundancy
+            group[1] += t.vtpv
     out = {}
-    for kind in kinds:
-        group = [t for t in tests if t.kind.value == kind and not t.rejected and np.isfinite(t.vtpv)]
-        r = float(sum(t.redundancy for t in group))
+    for kind, (r, vtpv) in sums.items():
         if r < 5:
             continue
-        factor = components.get(kind, 1.0) * float(sum(t.vtpv for t in group)) / r
+        factor = components.get(kind, 1.0) * vtpv / r
         if factor > chi2_quantile(1.0 - alpha, r) / r:
             out[kind] = factor
     return out

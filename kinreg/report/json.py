@@ -15,7 +15,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.network import Network
 from kinreg.estimate.reference import as_built
-from kinreg.estimate.snooping import trajectory_misfits
+from kinreg.estimate.snooping import residual_size
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.tables import stations_table, write_text
@@ -78,13 +78,13 @@ def build_report(
     alpha: float,
     timings_s: dict[str, float],
     trajectory_plot: dict[str, list[float]],
+    misfits: Sequence[ObservationTest],
     cloud_views: dict[str, Any] | None = None,
-    misfits: Sequence[ObservationTest] | None = None,
 ) -> dict[str, Any]:
     """The content of ``report.json``: ``jumps`` and ``corrections`` one per run, ``timings_s``
     the stage timings (the dictionary itself: a stage timed after this call still shows);
-    ``misfits`` the trajectory's links beyond their model where found already (else found here,
-    :func:`~kinreg.estimate.snooping.trajectory_misfits`)."""
+    ``misfits`` the trajectory's links beyond their model
+    (:func:`~kinreg.estimate.snooping.trajectory_misfits`, found with the adjustment)."""
     stations, links, datum = network.stations, network.links, network.datum.description
     shift_m, rotation_rad = (np.concatenate(parts) for parts in zip(*(c.magnitude() for c in corrections), strict=True))
     correction_mm, correction_mdeg = shift_m * 1000.0, np.degrees(rotation_rad) * 1000.0
@@ -131,8 +131,7 @@ def build_report(
             "normalised_residuals": tests_by_kind,
             # the trajectory's links beyond their model (never rejected: a wrong match or a jump)
             "trajectory_misfits": [{"stations": [int(t.i), int(t.j)], "normalised": float(t.normalised),
-                                    **_residual_figures(t)}
-                                   for t in (trajectory_misfits(result.tests, alpha) if misfits is None else misfits)],
+                                    **_residual_figures(t)} for t in misfits],
         },
         "stations": {
             "n": len(stations),
@@ -242,8 +241,7 @@ def _stats(values: FloatArray) -> dict[str, float]:
 def _residual_figures(test: ObservationTest) -> dict[str, float | None]:
     """How far a pose observation's residual moves [mm] and turns [mdeg] a station (None where
     unknown)."""
-    e = test.residual
-    if e is None or not np.all(np.isfinite(e)):
+    size = residual_size(test)
+    if size is None:
         return {"moved_mm": None, "turned_mdeg": None}
-    return {"moved_mm": 1000.0 * float(np.linalg.norm(e[:3])),
-            "turned_mdeg": 1000.0 * float(np.degrees(np.linalg.norm(e[3:])))}
+    return {"moved_mm": 1000.0 * size[0], "turned_mdeg": 1000.0 * float(np.degrees(size[1]))}

@@ -296,8 +296,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
             corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
             alpha=config.block.alpha, timings_s=clock.timings_s,
             trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
-            cloud_views=views.finish(out),  # "cloud" and "crs"; the PNGs go straight into out/figures
-            misfits=adjusted.misfits)
+            misfits=adjusted.misfits,
+            cloud_views=views.finish(out))  # "cloud" and "crs"; the PNGs go straight into out/figures
         report.update(points_report(adjusted.network, adjusted.result, adjusted.rates, control, check,
                                     kinematic.trajectories,
                                     corrections, config))
@@ -367,11 +367,16 @@ def _with_shorter_windows(stack: contextlib.ExitStack, folder: RunCache, inputs:
     :func:`~kinreg.estimate.snooping.models_rejected`): the network sliced again with shorter
     windows and its configuration, or ``est``'s again where the shorter windows' network shows a
     trajectory misfit of a wrong match that ``est``'s does not. ``None``: ``est`` stands."""
-    result = est.adjusted.result
-    showing = models_rejected(result.tests, result.variance_components, _OFFSET_KINDS, config.block.alpha)
-    window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing, bool(showing))
+    window = shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing)
     if window is None:
         return None
+    showing: dict[str, float] = {}
+    if shorter_window_s(config.slicing.window_s, est.smear_m, est.planes, config.slicing, False) is None:
+        # below the noise: worth shorter windows only where the planes' offsets show the smear
+        result = est.adjusted.result
+        showing = models_rejected(result.tests, result.variance_components, _OFFSET_KINDS, config.block.alpha)
+        if not showing:
+            return None
     shown = "".join(f", {kind} {factor:.1f}x its model" for kind, factor in showing.items())
     log.warning("the drift smears the planes by %.1f mm over half a window (median%s): sliced again with %.1f s "
                 "windows instead of %.1f s", 1000 * float(np.nanmedian(est.smear_m)), shown, window,
