@@ -163,6 +163,30 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
     """
     out = list(planes)
     largest = 0.0
+    for k, window in window_maps(stations, result, rates, trajectories).items():
+        if not out[k]:
+            continue
+        span = (stations[k].t_start_s - stations[k].t_s, stations[k].t_end_s - stations[k].t_s)
+        out[k] = tuple(_deskewed(p, window, span, over_patch=rates.coupling > 0.0) for p in out[k])
+        largest = max([largest] + [float(np.linalg.norm(a.centroid_xyz - b.centroid_xyz))
+                                   for a, b in zip(out[k], planes[k], strict=True)])
+    return out, largest
+
+
+# Stations either side of a window whose correction a map sent to a worker keeps
+# (:func:`window_maps`): the natural cubic spline through them differs from the one through the
+# whole run by far less than the correction's own error inside the window, and the map stays small.
+MAP_NEIGHBOURS = 4
+
+
+def window_maps(stations: Sequence[Station], result: BlockResult, rates: DriftRates,
+                trajectories: Sequence[Trajectory] = (), neighbours: int | None = None) -> dict[int, WindowMap]:
+    """Per timed quasi-static station (of a run with at least two): the map that takes the drift
+    inside its window out (:func:`deskewed_planes`, whose docstring says what it is), made from
+    the correction of ``result`` over the whole run, or with ``neighbours`` over the station and
+    that many either side (picklable and small: a map that goes to the worker that deskews the
+    scan's points, :func:`kinreg.run.stages.scan_planes`)."""
+    maps: dict[int, WindowMap] = {}
     for run, ks in _timed_runs(stations).items():
         if len(ks) < 2:
             continue
@@ -171,21 +195,30 @@ def deskewed_planes(stations: Sequence[Station], planes: Sequence[tuple[Plane, .
         rho_pos, rho_rot = (float(np.exp(-spacing / c)) if c > 0.0 else 0.0 for c in rates.correlation_s)
         initial, adjusted = result.poses_initial[ks], result.poses[ks]
         own = trajectories[run] if run < len(trajectories) else Trajectory(stamps, initial)
-        correction = DriftCorrection.from_stations(stamps, initial, adjusted, own, coupling=rates.coupling)
         for m, k in enumerate(ks):
-            if not out[k]:
-                continue
-            window = _WindowMap.at_centre(correction, float(stamps[m]), initial[m], adjusted[m], rates.coupling,
-                                          rho_pos, rho_rot)
-            span = (stations[k].t_start_s - stamps[m], stations[k].t_end_s - stamps[m])
-            out[k] = tuple(_deskewed(p, window, span, over_patch=rates.coupling > 0.0) for p in out[k])
-            largest = max([largest] + [float(np.linalg.norm(a.centroid_xyz - b.centroid_xyz))
-                                       for a, b in zip(out[k], planes[k], strict=True)])
-    return out, largest
+            if neighbours is None:
+                near, local = slice(None), own
+            else:
+                near = slice(max(m - neighbours, 0), min(m + neighbours + 1, len(ks)))
+                rows = rows_covering(own.stamps_s, stamps[near][0], stamps[near][-1])
+                local = Trajectory(own.stamps_s[rows], own.poses[rows])
+            if neighbours is not None or m == 0:
+                correction = DriftCorrection.from_stations(stamps[near], initial[near], adjusted[near], local,
+                                                           coupling=rates.coupling)
+            maps[k] = WindowMap.at_centre(correction, float(stations[k].t_s), initial[m], adjusted[m],
+                                          rates.coupling, rho_pos, rho_rot)
+    return maps
+
+
+def rows_covering(stamps_s: FloatArray, t0: float, t1: float) -> slice:
+    """The rows of ``stamps_s`` (sorted) that cover ``[t0, t1]``, one beyond either end."""
+    a = max(int(np.searchsorted(stamps_s, t0, side="right")) - 1, 0)
+    b = min(int(np.searchsorted(stamps_s, t1, side="left")) + 1, len(stamps_s) - 1)
+    return slice(a, b + 1)
 
 
 @dataclass(frozen=True, eq=False)
-class _WindowMap:
+class WindowMap:
     """The map of :func:`deskewed_planes` for one scan: scan-frame points seen ``tau`` from the
     centre time ``t_s`` to where the correction puts them, in the adjusted scan frame."""
 
@@ -204,7 +237,7 @@ class _WindowMap:
 
     @classmethod
     def at_centre(cls, correction: DriftCorrection, t_s: float, initial: Pose, adjusted: Pose, coupling: float,
-                  rho_pos: float, rho_rot: float) -> _WindowMap:
+                  rho_pos: float, rho_rot: float) -> WindowMap:
         (r_c,), (delta_c,), (p_c,) = correction.at(np.array([t_s]))
         return cls(correction, t_s, initial, adjusted, coupling, rho_pos, rho_rot, r_c, delta_c, p_c,
                    Pose(rotvec_to_quat(r_c), np.zeros(3)).rotation_matrix)
@@ -224,11 +257,40 @@ class _WindowMap:
         y = np.einsum("nij,nj->ni", R_c, y - pivot) + pivot + delta
         return (y - self.adjusted.t_xyz) @ self.adjusted.rotation_matrix
 
+    def key_parts(self) -> tuple[object, ...]:
+        """What the map is made of, for a stage-cache key."""
+        c = self.correction
+        return (c.stamps_s, c.rotvec, c.delta_m, c.pivot_xyz, c.coupling, self.t_s, self.initial, self.adjusted,
+                self.coupling, self.rho_pos, self.rho_rot)
+
+
+# Points a deskew maps at a time (:func:`deskewed_points`): a rotation matrix each, 72 MB.
+_POINTS_PER_MAP = 1_000_000
+
+
+def deskewed_points(mapped: WindowMap, xyz: FloatArray, tau_s: FloatArray,
+                    track: tuple[FloatArray, FloatArray]) -> FloatArray:
+    """A scan's points (n, 3, its frame) seen ``tau_s`` (n,) from its centre time, with the drift
+    inside its window taken out by ``mapped`` (:func:`window_maps`), each turned about where the
+    sensor was when it saw it (``track``: times, sensor positions in the scan frame,
+    :func:`~kinreg.estimate.slicing.sensor_track`). The exact form of what :func:`deskewed_planes`
+    does to a plane's parameters: a plane detected on these points is chosen from points that are
+    no longer sheared, where the band around a sheared plane took in the points of another surface
+    and left out the plane's own at the window's ends."""
+    out = np.empty_like(xyz, dtype=np.float64)
+    times, positions = track
+    for first in range(0, len(xyz), _POINTS_PER_MAP):
+        rows = slice(first, first + _POINTS_PER_MAP)
+        t = tau_s[rows] + mapped.t_s
+        sensor = np.column_stack([np.interp(t, times, positions[:, i]) for i in range(3)])
+        out[rows] = mapped(xyz[rows], tau_s[rows], sensor)
+    return out
+
 
 _STEP_M = 0.01  # along the tangents, for the tilt: the least half-distance of the points
 
 
-def _deskewed(p: Plane, mapped: _WindowMap, span_s: tuple[float, float] = (-np.inf, np.inf),
+def _deskewed(p: Plane, mapped: WindowMap, span_s: tuple[float, float] = (-np.inf, np.inf),
               over_patch: bool = True) -> Plane:
     """Plane ``p`` moved by ``mapped``: its centroid at its mean time, and its tilt from points on
     either side of it along each tangent, each at the time it was seen there (its time slope);

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from kinreg.config import SlicingConfig, WindowMode
-from kinreg.estimate.drift import DriftRates
+from kinreg.estimate.drift import DriftRates, rows_covering
 from kinreg.geometry import FloatArray
 from kinreg.types import Plane, ScanKind, ScanWindow, SkippedWindow, Station, Trajectory
 
@@ -94,11 +94,8 @@ SensorTrack = tuple[FloatArray, FloatArray]
 def sensor_track(trajectory: Trajectory, window: ScanWindow) -> SensorTrack:
     """The trajectory's rows that cover ``window`` (one beyond either end), the positions in the
     window's scan frame (``T_obj_scan^-1``): where the sensor was when it saw each point."""
-    stamps = trajectory.stamps_s
-    a = max(int(np.searchsorted(stamps, window.t_start_s, side="right")) - 1, 0)
-    b = min(int(np.searchsorted(stamps, window.t_end_s, side="left")) + 1, len(stamps) - 1)
-    rows = slice(a, b + 1)
-    return stamps[rows], window.T_obj_scan.apply_inverse(trajectory.poses.t_xyz[rows])
+    rows = rows_covering(trajectory.stamps_s, window.t_start_s, window.t_end_s)
+    return trajectory.stamps_s[rows], window.T_obj_scan.apply_inverse(trajectory.poses.t_xyz[rows])
 
 
 def window_smear_m(stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], rates: DriftRates) -> FloatArray:

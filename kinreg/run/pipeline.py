@@ -34,7 +34,14 @@ from kinreg.errors import AdjustmentFailedError, ConfigError
 from kinreg.estimate.control import Assignment, assign_points, tie_points
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import build_network
-from kinreg.estimate.drift import DriftRates
+from kinreg.estimate.drift import (
+    MAP_NEIGHBOURS,
+    MIXED_COUPLING,
+    DriftRates,
+    deskewed_planes,
+    window_maps,
+    window_velocity_covariance,
+)
 from kinreg.estimate.matching import candidate_pairs
 from kinreg.estimate.network import Network, station_pairs
 from kinreg.estimate.reference import to_reference_frame
@@ -292,7 +299,8 @@ def process(inputs: ProcessInputs, out_dir: str | Path, config: KinregConfig, ov
             config_toml=format_toml(config), network=adjusted.network, planes=planes,
             n_candidate_pairs=len(station_pairs(stations, config.matching, static)), result=adjusted.result,
             drift_rates=adjusted.rates, slicing=slicing_report([slices.summary for slices in sliced], config.slicing,
-                                                               est.smear_m, est.first_window_s),
+                                                               est.smear_m, est.first_window_s,
+                                                               est.points_deskewed),
             corrections=corrections, jumps=kinematic.jumps, references=references, stage_cache=folder.summary(),
             alpha=config.block.alpha, timings_s=clock.timings_s,
             trajectory_plot=trajectory_plot(kinematic.trajectories, corrected),
@@ -321,6 +329,7 @@ class EstimatedNetwork:
     adjusted: AdjustedNetwork
     smear_m: np.ndarray  # per station, by the measured drift over half its window
     first_window_s: float | None = None  # the windows of the first slicing, where they were too long
+    points_deskewed: bool = False  # planes detected on points an earlier adjustment deskewed
 
 
 def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
@@ -339,6 +348,8 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
                                    clock, control, est)
     if chosen is not None:
         est, config = chosen
+    est = _with_deskewed_points(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
+                                control, est)
     # The trajectory's own links are never rejected: beyond their model, by as much as two distinct
     # planes lie apart, they show plane links that agree on a wrong match no test found (or a jump
     # the detector missed). The global test can pass all the same, and the stations be 30-60 mm
@@ -398,19 +409,60 @@ def _with_shorter_windows(stack: contextlib.ExitStack, folder: RunCache, inputs:
     return dataclasses.replace(again, first_window_s=config.slicing.window_s), with_window(config, window)
 
 
+def _with_deskewed_points(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
+                          trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
+                          progress: Progress, executor: ExecutorContext, clock: StageClock,
+                          control: Assignment | None, est: EstimatedNetwork) -> EstimatedNetwork:
+    """Where the attitude error turns the trajectory's steps (a coupled drift: GNSS/INS-like,
+    ``rates.coupling`` at least :data:`~kinreg.estimate.drift.MIXED_COUPLING`'s upper end) and
+    shears the windows by more than the range noise (a third of the planes' band), ``est``'s planes
+    were chosen from sheared points: the band around a sheared wall takes in points of other
+    surfaces and leaves out the wall's own at the window's ends, and deskewing the plane's
+    parameters keeps that choice (held-out building, GNSS/INS-like drift: planes 7-9 mm off after
+    the deskew, 0.01-0.1 mm when the points themselves are deskewed with the true drift). Then
+    the points are deskewed with ``est``'s adjustment and the planes detected, linked and adjusted
+    again; that network is kept unless the trajectory disagrees with it as a wrong plane match
+    would where it did not with ``est``'s."""
+    adjusted = est.adjusted
+    if adjusted.rates.coupling < MIXED_COUPLING[1]:
+        return est
+    _, shift = deskewed_planes(adjusted.network.stations, est.planes, adjusted.result, adjusted.rates,
+                               est.kinematic.trajectories)
+    if shift <= config.planes.refit_distance_m / 3.0:
+        return est
+    log.warning("the attitude error shears the windows (a plane by up to %.1f mm): their points deskewed "
+                "with the adjusted drift and their planes detected again", 1000 * shift)
+    again = estimate_network(stack, folder, inputs, trajectories, references, config, progress, executor, clock,
+                             control, decoded=[slices.records() for slices in est.sliced], deskew_from=est)
+    if again.adjusted.wrong_matches and not adjusted.wrong_matches:
+        log.warning("with the deskewed points the trajectory disagrees with the adjusted network between %s: "
+                    "kept the planes of the sheared points", misfit_text(again.adjusted.wrong_matches))
+        return est
+    return dataclasses.replace(again, first_window_s=est.first_window_s, points_deskewed=True)
+
+
 def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: ProcessInputs,
                      trajectories: list[Trajectory], references: ReferencePlanes | None, config: KinregConfig,
                      progress: Progress, executor: ExecutorContext, clock: StageClock,
-                     control: Assignment | None = None, decoded: Sequence[Path | None] = ()) -> EstimatedNetwork:
+                     control: Assignment | None = None, decoded: Sequence[Path | None] = (),
+                     deskew_from: EstimatedNetwork | None = None) -> EstimatedNetwork:
     """Slice every run (its spill kept open on ``stack``), detect planes (and the static scans'),
     link and adjust: the stages of :func:`process` before the outputs, each through the stage cache.
-    ``decoded``: each run's cloud as an earlier slicing decoded it, where it kept it."""
+    ``decoded``: each run's cloud as an earlier slicing decoded it, where it kept it.
+    ``deskew_from``: an estimate with the same windows whose adjustment deskews the scans' points
+    before their planes are detected (:func:`_with_deskewed_points`)."""
+    maps, left = {}, None
+    if deskew_from is not None:
+        first = deskew_from.adjusted
+        maps = window_maps(first.network.stations, first.result, first.rates, deskew_from.kinematic.trajectories,
+                           MAP_NEIGHBOURS)
+        left = window_velocity_covariance(first.network.stations, first.result, first.rates)
     runs, static = inputs.runs, config.static if inputs.static is not None else None
     sliced = [stack.enter_context(sliced_run(folder, r.trajectory, r.cloud, trajectories[k], config, progress, k,
                                              decoded[k] if k < len(decoded) else None))
               for k, r in enumerate(runs)]
     clock.lap("slice")
-    kinematic = detect_run_planes(sliced, trajectories, references, config, progress, executor, folder)
+    kinematic = detect_run_planes(sliced, trajectories, references, config, progress, executor, folder, maps)
     static_stations, static_planes = detect_static_planes(inputs.static, len(kinematic.stations), config.planes,
                                                           progress, folder)  # none without --static
     stations, planes = kinematic.stations + static_stations, kinematic.planes + static_planes
@@ -421,7 +473,7 @@ def estimate_network(stack: contextlib.ExitStack, folder: RunCache, inputs: Proc
     network = build_network(stations, planes, links, references, static, config, controls)
     adjusted = adjust_or_fail(network, planes, static, config, progress, executor, folder,
                               inputs_report(runs, kinematic.trajectories, sliced, inputs.static, inputs.reference),
-                              kinematic.trajectories)
+                              kinematic.trajectories, left)
     folder.count("block", computed=1)
     clock.lap("block")
     return EstimatedNetwork(sliced, kinematic, stations, planes, adjusted,
@@ -435,12 +487,14 @@ def with_window(config: KinregConfig, window_s: float) -> KinregConfig:
 
 def adjust_or_fail(network: Network, planes: list[tuple[Plane, ...]], static: StaticConfig | None,
                    config: KinregConfig, progress: Progress, executor: ExecutorContext, folder: RunCache,
-                   report_inputs: dict[str, Any], trajectories: Sequence[Trajectory] = ()) -> AdjustedNetwork:
+                   report_inputs: dict[str, Any], trajectories: Sequence[Trajectory] = (),
+                   points_deskewed: np.ndarray | None = None) -> AdjustedNetwork:
     """:func:`~kinreg.run.stages.adjust_with_measured_drift`; when the adjustment fails, the
     folder's outputs (of an earlier run too) are removed, and with ``[block] on_failure =
     "report"`` a ``report.json`` and ``report.html`` marked failed take their place."""
     try:
-        return adjust_with_measured_drift(network, planes, static, config, progress, executor, trajectories)
+        return adjust_with_measured_drift(network, planes, static, config, progress, executor, trajectories,
+                                          points_deskewed)
     except AdjustmentFailedError as e:
         fail_adjustment(e, network, config, folder, report_inputs)
 

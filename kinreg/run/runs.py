@@ -155,17 +155,20 @@ def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory],
 
 
 def slicing_report(summaries: Sequence[SlicingSummary], config: SlicingConfig | None = None,
-                   smear_m: np.ndarray | None = None, first_window_s: float | None = None) -> dict[str, Any]:
+                   smear_m: np.ndarray | None = None, first_window_s: float | None = None,
+                   points_deskewed: bool = False) -> dict[str, Any]:
     """``report.json`` ``slicing``: totals over the runs; with several runs each skipped window
     names its run (1-based); the window length used (``first_window_s``: the one the run was
-    sliced with first, where the drift made it slice again) and the smear of each station's
-    window by the measured drift (:func:`~kinreg.estimate.slicing.window_smear_m`)."""
+    sliced with first, where the drift made it slice again), the smear of each station's
+    window by the measured drift (:func:`~kinreg.estimate.slicing.window_smear_m`), and whether
+    the planes were detected on points deskewed by a first adjustment (``points_deskewed``)."""
     several = len(summaries) > 1
     smear = np.zeros(0) if smear_m is None else np.asarray(smear_m) * 1000.0
     finite = smear[np.isfinite(smear)]
     windows = {} if config is None else {
         "window_s": config.window_s if config.mode is WindowMode.DURATION else None,
         "window_s_first": first_window_s,
+        "points_deskewed": points_deskewed,
         "smear_mm": {"median": float(np.median(finite)) if len(finite) else None,
                      "max": float(finite.max()) if len(finite) else None,
                      "per_station": [None if not np.isfinite(v) else float(v) for v in smear]},

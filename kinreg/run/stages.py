@@ -4,7 +4,7 @@ the output folder's stage cache (:mod:`kinreg.run.output_folder`), with progress
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -25,7 +25,9 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import adjust_network, screen_control_points, take_out_jumps
 from kinreg.estimate.drift import (
     DriftRates,
+    WindowMap,
     deskewed_planes,
+    deskewed_points,
     estimate_drift_rates,
     plane_time_offsets,
     regime_coupling,
@@ -40,7 +42,7 @@ from kinreg.estimate.planes import detect_planes, facing_the_sensor
 from kinreg.estimate.reference import to_reference_frame
 from kinreg.estimate.slicing import SensorTrack, sensor_track
 from kinreg.estimate.snooping import misfit_text, trajectory_misfits, wrong_match_misfits
-from kinreg.geometry import Pose, pose_sigmas
+from kinreg.geometry import FloatArray, Pose, pose_sigmas
 from kinreg.io.checks import check_inputs
 from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.io.trajectory import parse_column_mapping, read_trajectory, write_trajectory_geoslam
@@ -68,16 +70,21 @@ from kinreg.types import (
 log = logging.getLogger(__name__)
 
 
-# A planes task: the sequence's small index, the scan's number, the settings, the sensor's track.
-PlanesTask = tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None]
+# A planes task: the sequence's small index, the scan's number, the settings, the sensor's track,
+# the map that takes the drift inside the window out of its points (or None).
+PlanesTask = tuple[QuasiStaticSequence, int, PlanesConfig, SensorTrack | None, WindowMap | None]
 
 
 def scan_planes(task: PlanesTask) -> tuple[Station, tuple[Plane, ...]]:
     """One scan's planes and its station (a top-level function: it runs on worker processes).
-    The task carries the sequence's small index (windows, spill paths) and the sensor's track
-    through the window (:func:`~kinreg.estimate.slicing.sensor_track`, or None), never the points."""
-    sequence, i, config, track = task
+    The task carries the sequence's small index (windows, spill paths), the sensor's track
+    through the window (:func:`~kinreg.estimate.slicing.sensor_track`, or None) and a map that
+    deskews the scan's points before its planes are detected
+    (:func:`~kinreg.estimate.drift.deskewed_points`, or None), never the points."""
+    sequence, i, config, track, mapped = task
     scan = sequence.read_scan(i)
+    if mapped is not None and track is not None and scan.stamps_s is not None:
+        scan = replace(scan, points_xyz=deskewed_points(mapped, scan.points_xyz, scan.stamps_s - scan.t_s, track))
     found = detect_planes(scan, config)
     tau = float("nan")
     if scan.stamps_s is not None:
@@ -90,9 +97,10 @@ def scan_planes(task: PlanesTask) -> tuple[Station, tuple[Plane, ...]]:
 
 
 def _tasks(sequence: QuasiStaticSequence, indices: Iterable[int], config: PlanesConfig,
-           trajectory: Trajectory | None) -> Iterator[PlanesTask]:
+           trajectory: Trajectory | None, maps: Mapping[int, WindowMap]) -> Iterator[PlanesTask]:
     for i in indices:
-        yield sequence, i, config, None if trajectory is None else sensor_track(trajectory, sequence.windows[i])
+        yield (sequence, i, config, None if trajectory is None else sensor_track(trajectory, sequence.windows[i]),
+               maps.get(i))
 
 
 def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progress: Progress,
@@ -103,7 +111,7 @@ def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progr
     ``trajectory`` the run was sliced with, each plane also knows where the sensor was while it
     saw it (:attr:`~kinreg.types.Plane.sensor_xyz`)."""
     progress.start("planes", total=len(sequence), unit="scans")
-    results = parallel_map(scan_planes, _tasks(sequence, range(len(sequence)), config, trajectory),
+    results = parallel_map(scan_planes, _tasks(sequence, range(len(sequence)), config, trajectory, {}),
                            executor or in_process(), progress)
     progress.finish()
     return [r[0] for r in results], [r[1] for r in results]
@@ -111,11 +119,16 @@ def detect_all_planes(sequence: QuasiStaticSequence, config: PlanesConfig, progr
 
 def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: Progress,
                          executor: ExecutorContext, run: RunCache,
-                         trajectory: Trajectory | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
+                         trajectory: Trajectory | None = None,
+                         maps: Mapping[int, WindowMap] | None = None) -> tuple[list[Station], list[tuple[Plane, ...]]]:
     """:func:`detect_all_planes` through the stage cache: each scan is looked up under (slice
-    key, scan index, ``[planes]``); the others are detected and stored as each finishes, so that
-    an interrupted run keeps the scans it finished. The points are read only when a scan is missing."""
-    keys = [run.key("planes", slices.key, i, config) for i in range(len(slices))]
+    key, scan index, ``[planes]``, its deskew map); the others are detected and stored as each
+    finishes, so that an interrupted run keeps the scans it finished. The points are read only when
+    a scan is missing. ``maps``: per scan index, the map that deskews its points
+    (:func:`~kinreg.estimate.drift.deskewed_points`)."""
+    maps = maps or {}
+    keys = [run.key("planes", slices.key, i, config, *(maps[i].key_parts() if i in maps else ()))
+            for i in range(len(slices))]
     results: list[tuple[Station, tuple[Plane, ...]] | None] = []
     for key in keys:
         entry = run.load("planes", key)
@@ -133,7 +146,8 @@ def detect_planes_cached(slices: CachedSlices, config: PlanesConfig, progress: P
     progress.start("planes", total=len(keys), unit="scans")
     progress.advance(len(keys) - len(missing))
     if sequence is not None:
-        parallel_map(scan_planes, _tasks(sequence, missing, config, trajectory), executor, progress, on_result=keep)
+        parallel_map(scan_planes, _tasks(sequence, missing, config, trajectory, maps), executor, progress,
+                     on_result=keep)
     progress.finish()
     done = [r for r in results if r is not None]
     return [r[0] for r in done], [r[1] for r in done]
@@ -231,14 +245,20 @@ def adjust_with_measured_drift(
     progress: Progress,
     executor: ExecutorContext | None = None,
     trajectories: Sequence[Trajectory] = (),
+    points_deskewed: FloatArray | None = None,
 ) -> AdjustedNetwork:
     """The block adjustment of ``network`` with the drift it measures: the first adjustment measures
     the drift rates and the coupling (:func:`~kinreg.estimate.drift.estimate_drift_rates`); the pairs
     are then linked again from the adjusted poses (on ``executor``) and the network adjusted again,
     until the linked pairs no longer change (``[block] max_relink_rounds``); a last pass forms the
     trajectory's links with the final rates and coupling, so that the planes' window deformation
-    and the stretches carried by the trajectory alone get honest sigmas."""
+    and the stretches carried by the trajectory alone get honest sigmas. ``points_deskewed``: the
+    planes were detected on points an earlier adjustment deskewed (:func:`~kinreg.estimate.drift.deskewed_points`),
+    and this (n, 6, 6) is the drift velocity's covariance that deskew left
+    (:func:`~kinreg.estimate.drift.window_velocity_covariance`): their parameters are not deskewed again."""
     prior_rates = DriftRates.from_config(config.drift)
+    if points_deskewed is not None:
+        network = replace(network, velocity_cov=points_deskewed)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
                                  config.drift.measure_correlation, network.links)
@@ -261,9 +281,12 @@ def adjust_with_measured_drift(
         # Where the attitude error is coupled (GNSS/INS-like) it shears every window: its planes are
         # moved back with the adjusted attitudes, and every pair is linked again with them.
         # (Where no plane moves by more than its offset's floor sigma, nothing is gained.)
-        deskewed, shift = deskewed_planes(network.stations, planes, result, rates, trajectories)
-        sheared = shift > config.planes.min_sigma_d_m
-        velocity_cov = window_velocity_covariance(network.stations, result, rates) if sheared else None
+        if points_deskewed is None:
+            deskewed, shift = deskewed_planes(network.stations, planes, result, rates, trajectories)
+            sheared = shift > config.planes.min_sigma_d_m
+            velocity_cov = window_velocity_covariance(network.stations, result, rates) if sheared else None
+        else:
+            deskewed, sheared, velocity_cov = planes, False, points_deskewed
         links = link_stations(network.stations, deskewed if sheared else planes, config.matching, config.drift,
                               config.pairwise, progress, static, executor, rates, adjusted=result,
                               previous=() if faster or sheared else network.links, velocity_cov=velocity_cov)
@@ -510,14 +533,19 @@ class KinematicStations:
 
 def detect_run_planes(sliced: Sequence[CachedSlices], trajectories: Sequence[Trajectory],
                       references: ReferencePlanes | None, config: KinregConfig, progress: Progress,
-                      executor: ExecutorContext, run: RunCache) -> KinematicStations:
+                      executor: ExecutorContext, run: RunCache,
+                      maps: Mapping[int, WindowMap] | None = None) -> KinematicStations:
     """Planes and stations of every run (:func:`detect_planes_cached`), each run numbered after the
-    previous one, moved into the reference frame and with its trajectory jumps taken out."""
+    previous one, moved into the reference frame and with its trajectory jumps taken out.
+    ``maps``: per station (numbered as the result's), the map that deskews its scan's points."""
     stations: list[Station] = []
     planes: list[tuple[Plane, ...]] = []
     moved, jumps = list(trajectories), []
     for k, slices in enumerate(sliced):
-        run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run, trajectories[k])
+        first = len(stations)
+        own = {i - first: m for i, m in (maps or {}).items() if first <= i < first + len(slices)}
+        run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run, trajectories[k],
+                                                        own)
         run_stations, moved[k] = to_reference_frame(run_stations, moved[k], references)  # [initial_transform]
         run_stations, run_planes = label_run(run_stations, run_planes, k, len(stations), len(sliced))
         run_stations, run_planes, run_jumps = take_out_jumps(run_stations, run_planes, moved[k], config.jumps)
