@@ -295,7 +295,7 @@ def adjust_with_measured_drift(
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
         network = replace(network.with_links(links), velocity_cov=velocity_cov)
-        if round_ == 0 and sheared and config.drift.measure_correlation:
+        if round_ == 0 and (sheared or points_deskewed is not None) and config.drift.measure_correlation:
             correlation = _correlation_of_deskewed(network, result, rates, prior_rates, config, progress)
             rates = replace(rates, correlation_s=correlation)
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
