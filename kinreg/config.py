@@ -72,6 +72,11 @@ class SlicingConfig:
     max_smear_share: float = 0.5
     shown_smear_share: float = 1.0
     min_window_s: float = 2.0
+    # Where the attitude error turns the trajectory's steps (GNSS/INS-like: a measured coupling
+    # above 0.75) and shears the windows by more than the range noise, the planes were chosen from
+    # sheared points: the windows' points are deskewed with the first adjustment and their planes
+    # detected, linked and adjusted again (the planes' stage and what follows it, twice).
+    deskew_sheared: bool = True
 
 
 @dataclasses.dataclass(frozen=True)

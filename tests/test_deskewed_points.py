@@ -4,15 +4,20 @@ about where the sensor was when it saw them. Deskewed point by point with the co
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from kinreg.config import PlanesConfig
+from kinreg.config import PlanesConfig, load_config
 from kinreg.estimate.drift import MAP_NEIGHBOURS, DriftRates, deskewed_points, window_maps
 from kinreg.estimate.planes import detect_planes
 from kinreg.geometry import Pose, rotvec_to_quat
+from kinreg.run.pipeline import ProcessInputs
+from kinreg.simulation.drift import DriftConfig as SimDriftConfig
+from kinreg.simulation.drift import DriftModel
 from kinreg.types import Scan, ScanKind, Station, Trajectory
 
 HEADING_ERROR = 0.025  # rad: 1.4 deg, the held-out GNSS/INS-like run's at its end
@@ -79,3 +84,49 @@ def test_the_points_of_a_sheared_window_deskewed_give_its_walls_where_they_are()
     assert after == pytest.approx(sorted(WALLS_Y), abs=2e-4)
     # sheared, each wall fell apart into strips some 4 cm apart (here: three each)
     assert len(walls_before) > 2 and max(before) - min(abs(w) for w in before) > 0.03
+
+
+def _gnss_ins_run(tmp_path: Path, model: DriftModel) -> ProcessInputs:
+    from kinreg.simulation.files import write_run
+    from kinreg.simulation.run import SimulationConfig, simulate_run
+
+    # 1.5 deg of attitude error reached within the 72 s run: the heading error of the held-out
+    # GNSS/INS-like run at its end (a wall seen over a 6 s window sheared by centimetres)
+    drift = SimDriftConfig(drift_pos_m_at_300s=0.02, drift_rot_deg_at_300s=1.5, model=model, at_s=72.0)
+    write_run(simulate_run(SimulationConfig(seed=2, duration_s=72.0, drift=drift)), tmp_path / "data")
+    return ProcessInputs(tmp_path / "data" / "run_trajectory.txt", tmp_path / "data" / "run_cloud.laz")
+
+
+def _station_rms_mm(out: Path, data: Path) -> float:
+    from kinreg.io.trajectory import read_trajectory
+    from kinreg.report.json import rigid_fit
+
+    rows = np.genfromtxt(out / "stations.csv", delimiter=",", names=True)
+    adjusted = np.column_stack([rows["x"], rows["y"], rows["z"]])
+    true = read_trajectory(data / "truth_trajectory.txt").pose_at(rows["t"]).t_xyz
+    R, t = rigid_fit(adjusted, true)
+    return float(np.sqrt(np.mean(np.sum((adjusted @ R.T + t - true) ** 2, axis=1)))) * 1000
+
+
+def test_a_sheared_run_has_its_points_deskewed_and_its_stations_follow(tmp_path: Path) -> None:
+    from kinreg.report.html import _window_text
+    from kinreg.run.pipeline import process
+
+    inputs = _gnss_ins_run(tmp_path, DriftModel.GNSS_INS)
+    (tmp_path / "off.toml").write_text("[slicing]\ndeskew_sheared = false\n")
+    process(inputs, tmp_path / "on", load_config(None))
+    process(inputs, tmp_path / "off", load_config(tmp_path / "off.toml"))
+    on = json.loads((tmp_path / "on" / "report.json").read_text())["slicing"]
+    off = json.loads((tmp_path / "off" / "report.json").read_text())["slicing"]
+    assert on["points_deskewed"] and not off["points_deskewed"]
+    assert "points deskewed" in _window_text(on) and "points deskewed" not in _window_text(off)
+    rms_on, rms_off = (_station_rms_mm(tmp_path / k, tmp_path / "data") for k in ("on", "off"))
+    assert rms_on < 0.8 * rms_off
+
+
+def test_a_rigid_drift_of_the_world_shears_no_window(tmp_path: Path) -> None:
+    from kinreg.run.pipeline import process
+
+    inputs = _gnss_ins_run(tmp_path, DriftModel.WORLD)
+    process(inputs, tmp_path / "out", load_config(None))
+    assert not json.loads((tmp_path / "out" / "report.json").read_text())["slicing"]["points_deskewed"]

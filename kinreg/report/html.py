@@ -137,10 +137,13 @@ def _crs_text(crs: Any) -> str:
 
 
 def _window_text(slicing: dict[str, Any]) -> str:
-    """The window length, the first one where the drift made kinreg slice again, and the smear."""
+    """The window length, the first one where the drift made kinreg slice again, whether the
+    windows' points were deskewed before their planes were detected, and the smear."""
     text = _fmt(slicing.get("window_s"), 1, "s")
     if slicing.get("window_s_first") is not None:
         text += f" (sliced again: {_fmt(slicing.get('window_s_first'), 1, 's')} smeared the planes)"
+    if slicing.get("points_deskewed"):
+        text += " (points deskewed: the attitude error sheared the windows)"
     smear = (slicing.get("smear_mm") or {}).get("median")
     return text if smear is None else f"{text}, drift over half a window {_fmt(smear, 1, 'mm')}"
 

@@ -422,9 +422,9 @@ def _with_deskewed_points(stack: contextlib.ExitStack, folder: RunCache, inputs:
     the deskew, 0.01-0.1 mm when the points themselves are deskewed with the true drift). Then
     the points are deskewed with ``est``'s adjustment and the planes detected, linked and adjusted
     again; that network is kept unless the trajectory disagrees with it as a wrong plane match
-    would where it did not with ``est``'s."""
+    would where it did not with ``est``'s. ``[slicing] deskew_sheared = false``: ``est`` stands."""
     adjusted = est.adjusted
-    if adjusted.rates.coupling < MIXED_COUPLING[1]:
+    if not config.slicing.deskew_sheared or adjusted.rates.coupling < MIXED_COUPLING[1]:
         return est
     _, shift = deskewed_planes(adjusted.network.stations, est.planes, adjusted.result, adjusted.rates,
                                est.kinematic.trajectories)
