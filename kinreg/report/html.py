@@ -143,7 +143,7 @@ def _window_text(slicing: dict[str, Any]) -> str:
     if slicing.get("window_s_first") is not None:
         text += f" (sliced again: {_fmt(slicing.get('window_s_first'), 1, 's')} smeared the planes)"
     if slicing.get("points_deskewed"):
-        text += " (points deskewed: the attitude error sheared the windows)"
+        text += ", points deskewed"  # the attitude error sheared the windows
     smear = (slicing.get("smear_mm") or {}).get("median")
     return text if smear is None else f"{text}, drift over half a window {_fmt(smear, 1, 'mm')}"
 
