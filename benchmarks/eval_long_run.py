@@ -25,7 +25,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
 
-def simulation(rate_divisor: float, drift_model: str | None, seed: int = 1):
+def simulation(rate_divisor: float, drift_model: str | None, seed: int = 1,
+               drift_at_end: tuple[float, float] | None = None):
+    """The run's simulation; ``drift_at_end``: the position [m] and attitude [deg] errors it reaches
+    at its end (else the seed-like run's)."""
     import bench_scale
 
     cfg = bench_scale.seed_like_config(235e6, seed)
@@ -34,6 +37,9 @@ def simulation(rate_divisor: float, drift_model: str | None, seed: int = 1):
         from kinreg.simulation.drift import DriftModel
 
         cfg = replace(cfg, drift=replace(cfg.drift, model=DriftModel(drift_model)))
+    if drift_at_end is not None:
+        cfg = replace(cfg, drift=replace(cfg.drift, drift_pos_m_at_300s=drift_at_end[0],
+                                         drift_rot_deg_at_300s=drift_at_end[1], at_s=cfg.duration_s))
     return cfg
 
 
@@ -43,6 +49,8 @@ def main() -> None:
     parser.add_argument("--rate-divisor", type=float, default=10.0)
     parser.add_argument("--drift-model", default=None, help="world, slam or gnss-ins (default: the simulator's)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--drift-at-end", type=float, nargs=2, default=None, metavar=("POS_M", "ROT_DEG"),
+                        help="position and attitude errors reached at the run's end (default: the seed-like run's)")
     parser.add_argument("--config", nargs="+", default=["default="],
                         help="label=path of a kinreg config TOML (empty path: the defaults)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "long_run.json")
@@ -59,7 +67,7 @@ def main() -> None:
 
     data = args.data
     data.mkdir(parents=True, exist_ok=True)
-    cfg = simulation(args.rate_divisor, args.drift_model, args.seed)
+    cfg = simulation(args.rate_divisor, args.drift_model, args.seed, args.drift_at_end)
     traj, cloud = data / "run_trajectory.txt", data / "run_cloud.laz"
     generated = None
     if not cloud.exists():
