@@ -149,6 +149,19 @@ def cloud_fit(run, xyz_iter) -> tuple[float, float]:
     return float(np.sqrt(sq / n)), float(np.sqrt(sq_fit / count[used].sum()))
 
 
+def errors_relative_to_datum(st: dict[str, np.ndarray], truth, drifted) -> np.ndarray:
+    """Per station (n, 3) [mm]: the adjusted position (``st``, :func:`read_stations`) against the
+    truth moved rigidly so that the datum station's true pose falls on the pose it was held at, the
+    trajectory's (where the datum is one held station, zero sigmas; else against the truth itself)."""
+    adj = np.column_stack([st["x"], st["y"], st["z"]])
+    true_xyz = truth.pose_at(st["t"]).t_xyz
+    held = np.flatnonzero(np.column_stack([st["sx_mm"], st["sy_mm"], st["sz_mm"]]).max(axis=1) == 0)
+    if len(held) == 1:
+        t_datum = st["t"][held]
+        true_xyz = drifted.pose_at(t_datum).compose(truth.pose_at(t_datum).inverse()).apply(true_xyz)
+    return (adj - true_xyz) * 1000
+
+
 def station_errors(stations_csv: Path, truth, drifted) -> dict:
     """The adjusted stations of ``stations_csv`` against the ``truth`` trajectory (``drifted``: the
     run's own): errors after a rigid fit, in the datum, relative to the datum station, and
@@ -170,12 +183,7 @@ def station_errors(stations_csv: Path, truth, drifted) -> dict:
     # trajectory's value, which carries the run's drift at that moment. The error they describe
     # is the adjusted position's against the truth moved rigidly so that the datum station's true
     # pose falls on the pose it was held at (where the datum is one held station; else absolute).
-    err_relative = err_datum
-    if np.count_nonzero(~free) == 1:
-        k = int(np.flatnonzero(~free)[0])
-        held = drifted.pose_at(st["t"][[k]])
-        to_datum = held.compose(truth.pose_at(st["t"][[k]]).inverse())
-        err_relative = (adj - to_datum.apply(true_xyz)) * 1000
+    err_relative = errors_relative_to_datum(st, truth, drifted)
     z = err_relative[free] / sig[free]
     # How much of the height error is one tilt of the network about the datum station (two numbers
     # per run): where it is most of it, a run is about two samples of the z sigmas' honesty, not

@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 def one_draw(scenario: str, drift_model: str, magnitude: str, seed: int, draw: int, config: Path | None) -> dict:
     """The stations' errors relative to the datum [mm] and their sigmas [mm] for noise draw ``draw``."""
-    from eval_accuracy import read_stations, scenario_config
+    from eval_accuracy import errors_relative_to_datum, read_stations, scenario_config
 
     import kinreg.simulation.run as simulation
     from kinreg.config import load_config
@@ -48,16 +48,12 @@ def one_draw(scenario: str, drift_model: str, magnitude: str, seed: int, draw: i
             write_run(simulation.simulate_run(scenario_config(scenario, seed, drift_model, magnitude)), data)
             process(ProcessInputs(data / "run_trajectory.txt", data / "run_cloud.laz"), out, load_config(config),
                     overwrite=True)
-            truth = read_trajectory(data / "truth_trajectory.txt")
-            drifted = read_trajectory(data / "run_trajectory.txt")
             st = read_stations(out / "stations.csv")
+            error = errors_relative_to_datum(st, read_trajectory(data / "truth_trajectory.txt"),
+                                             read_trajectory(data / "run_trajectory.txt"))
     finally:
         simulation._rng = streams
-    adjusted = np.column_stack([st["x"], st["y"], st["z"]])
     sigma = np.column_stack([st["sx_mm"], st["sy_mm"], st["sz_mm"]])
-    k = int(np.flatnonzero(sigma.max(axis=1) == 0)[0])  # the datum station, held at the trajectory's pose
-    to_datum = drifted.pose_at(st["t"][[k]]).compose(truth.pose_at(st["t"][[k]]).inverse())
-    error = (adjusted - to_datum.apply(truth.pose_at(st["t"]).t_xyz)) * 1000
     return {"draw": draw, "t": st["t"].tolist(), "error_mm": error.tolist(), "sigma_mm": sigma.tolist()}
 
 

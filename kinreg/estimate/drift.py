@@ -195,16 +195,16 @@ def window_maps(stations: Sequence[Station], result: BlockResult, rates: DriftRa
         rho_pos, rho_rot = (float(np.exp(-spacing / c)) if c > 0.0 else 0.0 for c in rates.correlation_s)
         initial, adjusted = result.poses_initial[ks], result.poses[ks]
         own = trajectories[run] if run < len(trajectories) else Trajectory(stamps, initial)
+        whole = None if neighbours is not None else DriftCorrection.from_stations(stamps, initial, adjusted, own,
+                                                                                  coupling=rates.coupling)
         for m, k in enumerate(ks):
-            if neighbours is None:
-                near, local = slice(None), own
-            else:
+            correction = whole
+            if correction is None:
                 near = slice(max(m - neighbours, 0), min(m + neighbours + 1, len(ks)))
                 # the trajectory through the window: where the sensor was, for a point without its own
                 rows = rows_covering(own.stamps_s, stations[k].t_start_s, stations[k].t_end_s)
-                local = Trajectory(own.stamps_s[rows], own.poses[rows])
-            if neighbours is not None or m == 0:
-                correction = DriftCorrection.from_stations(stamps[near], initial[near], adjusted[near], local,
+                correction = DriftCorrection.from_stations(stamps[near], initial[near], adjusted[near],
+                                                           Trajectory(own.stamps_s[rows], own.poses[rows]),
                                                            coupling=rates.coupling)
             maps[k] = WindowMap.at_centre(correction, float(stations[k].t_s), initial[m], adjusted[m],
                                           rates.coupling, rho_pos, rho_rot)
@@ -261,8 +261,8 @@ class WindowMap:
     def key_parts(self) -> tuple[object, ...]:
         """What the map is made of, for a stage-cache key."""
         c = self.correction
-        return (c.stamps_s, c.rotvec, c.delta_m, c.pivot_xyz, c.coupling, self.t_s, self.initial, self.adjusted,
-                self.coupling, self.rho_pos, self.rho_rot)
+        return (c.stamps_s, c.rotvec, c.delta_m, c.pivot_xyz, self.t_s, self.initial, self.adjusted, self.coupling,
+                self.rho_pos, self.rho_rot)
 
 
 # Points a deskew maps at a time (:func:`deskewed_points`): twelve coefficients each, 96 MB.

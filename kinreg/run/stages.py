@@ -543,9 +543,9 @@ def detect_run_planes(sliced: Sequence[CachedSlices], trajectories: Sequence[Tra
     moved, jumps = list(trajectories), []
     for k, slices in enumerate(sliced):
         first = len(stations)
-        own = {i - first: m for i, m in (maps or {}).items() if first <= i < first + len(slices)}
+        run_maps = {i - first: m for i, m in (maps or {}).items() if first <= i < first + len(slices)}
         run_stations, run_planes = detect_planes_cached(slices, config.planes, progress, executor, run, trajectories[k],
-                                                        own)
+                                                        run_maps)
         run_stations, moved[k] = to_reference_frame(run_stations, moved[k], references)  # [initial_transform]
         run_stations, run_planes = label_run(run_stations, run_planes, k, len(stations), len(sliced))
         run_stations, run_planes, run_jumps = take_out_jumps(run_stations, run_planes, moved[k], config.jumps)
