@@ -146,10 +146,10 @@ def test_the_deskewed_planes_agree_with_the_adjustment_they_end_in(tmp_path: Pat
     inputs = _gnss_ins_run(tmp_path, DriftModel.GNSS_INS)
     (tmp_path / "planes.toml").write_text("[slicing]\ndeskew_sheared = false\n")  # planes deskewed, not points
     moves = {}
-    adjust = stages.adjust_with_measured_drift
+    adjust, default = stages.adjust_with_measured_drift, stages._DESKEW_ROUNDS
 
     def both(network, planes, static, config, progress, executor=None, trajectories=(), points_deskewed=None):
-        for rounds in (0, stages._DESKEW_ROUNDS):
+        for rounds in (0, default):
             monkeypatch.setattr(stages, "_DESKEW_ROUNDS", rounds)
             out = adjust(network, planes, static, config, progress, executor, trajectories, points_deskewed)
             again, _ = deskewed_planes(out.network.stations, planes, out.result, out.rates, trajectories)
@@ -158,6 +158,6 @@ def test_the_deskewed_planes_agree_with_the_adjustment_they_end_in(tmp_path: Pat
 
     monkeypatch.setattr(pipeline, "adjust_with_measured_drift", both)
     process(inputs, tmp_path / "out", load_config(tmp_path / "planes.toml"))
-    unsettled, settled = moves[0], moves[stages._DESKEW_ROUNDS]
+    unsettled, settled = moves[0], moves[default]
     assert unsettled > 1.0, moves
     assert settled < 0.5 * unsettled and settled < 2.5 * stages._DESKEW_SETTLED, moves
