@@ -195,11 +195,13 @@ def window_maps(stations: Sequence[Station], result: BlockResult, rates: DriftRa
         rho_pos, rho_rot = (float(np.exp(-spacing / c)) if c > 0.0 else 0.0 for c in rates.correlation_s)
         initial, adjusted = result.poses_initial[ks], result.poses[ks]
         own = trajectories[run] if run < len(trajectories) else Trajectory(stamps, initial)
-        whole = DriftCorrection.from_stations(stamps, initial, adjusted, own, coupling=rates.coupling)
+        whole = (DriftCorrection.from_stations(stamps, initial, adjusted, own, coupling=rates.coupling)
+                 if neighbours is None else None)  # a map per station of its neighbours only: never used
         for m, k in enumerate(ks):
             correction = whole
-            if neighbours is not None:
-                near = slice(max(m - neighbours, 0), min(m + neighbours + 1, len(ks)))
+            if correction is None:
+                n = neighbours or 0  # given: there is no whole run's correction without it
+                near = slice(max(m - n, 0), min(m + n + 1, len(ks)))
                 # the trajectory through the window: where the sensor was, for a point without its own
                 rows = rows_covering(own.stamps_s, stations[k].t_start_s, stations[k].t_end_s)
                 correction = DriftCorrection.from_stations(stamps[near], initial[near], adjusted[near],
