@@ -189,6 +189,13 @@ class BlockConfig:
     # (errors shared by all links of a scan and smooth drift do not show in residuals).
     variance_components: bool = True
     max_variance_rounds: int = 10
+    # Where the drift velocity is an unknown of the trajectory's links: a variance component per
+    # object axis of its change from one link to the next, and per position and rotation of the
+    # links' floor, up or down (their residuals show their whole error); the spreads and floors
+    # they measure are the next adjustment's (kinreg.estimate.drift.with_measured_spread). Off:
+    # more accurate on the simulated matrix, but a short SLAM-like run's coupling read 1 with it
+    # (benchmarks/RESULTS.md, twenty-second session).
+    drift_per_axis: bool = False
     disconnected: Disconnected = Disconnected.STOP
     on_failure: OnFailure = OnFailure.STOP
     # Match the pairs again from the adjusted poses and adjust again, until the linked pairs no

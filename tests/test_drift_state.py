@@ -421,3 +421,65 @@ def test_a_wall_seen_from_a_walk_that_stops_turns_about_where_the_sensor_was():
 
     assert offset_error(wall) < 5e-5
     assert offset_error(replace(wall, sensor_xyz=None, sensor_slope=None)) > 2e-3
+
+
+def _network_seen_throughout(seed: int, walk_step: np.ndarray):
+    """A walk whose every station sees planes with its next three (links among them); the drift
+    velocity a random walk whose step per link has the spread ``walk_step`` on every axis, and no
+    floor at all (as the simulator's)."""
+    rng = np.random.default_rng(seed)
+    truth = _walk()
+    v = np.cumsum(rng.normal(0.0, walk_step, (N_STATIONS - 1, 6)), axis=0)
+    poses = [truth[0]]
+    for k in range(N_STATIONS - 1):
+        rel = truth[k].inverse().compose(truth[k + 1])
+        S = np.kron(np.eye(2), truth[k + 1].rotation_matrix.T)
+        poses.append(poses[-1].compose(rel.compose(Pose.exp(-DT * S @ v[k]))))
+    initial = Pose.stack(poses)
+    stations = [Station(k, f"s{k}", ScanKind.QUASI_STATIC, DT * k, DT * k, DT * k, initial[k], 1000, tau_s=0.0)
+                for k in range(N_STATIONS)]
+    planes = []
+    for a in range(N_STATIONS):
+        for b in range(a + 1, min(a + 4, N_STATIONS)):
+            Z = truth[a].inverse().compose(truth[b]).compose(Pose.exp(rng.normal(0.0, PLANE_SIGMA)))
+            planes.append(RelativeObservation(ObservationKind.PLANES, a, b, Z, np.diag(PLANE_SIGMA**-2), 6))
+    return truth, stations, planes
+
+
+def test_the_drift_velocity_is_measured_per_axis_by_its_changes():
+    """A drift velocity that walks at random with the same step on every position axis, adjusted
+    with a model whose change follows each axis's level (x a quarter of the step, y three times
+    it) and a floor five times the trajectory's: the variance components per axis find the
+    change on each axis (x ~16, y ~1/9) and bring the floor down, and the errors follow their
+    sigmas. With one component for the kind (raised only) and the trajectory's true floor, x's
+    sigmas are too small."""
+    from kinreg.estimate.snooping import axis_component_name
+
+    step = np.array([5e-5, 5e-5, 5e-5, 1e-6, 1e-6, 1e-6])
+    tau = 120.0
+    spread = step / np.sqrt(1.0 - np.exp(-2.0 * DT / tau))  # the spread whose change is the step
+    rates = DriftRates(spread[:3] * [0.25, 3.0, 1.0], spread[3:], 1e-3, 1e-5, correlation_s=(tau, tau))
+    fixed = np.arange(N_STATIONS) == 0
+
+    def adjusted(per_axis: bool, rates: DriftRates = rates):
+        z, components = [], []
+        for seed in range(12):
+            truth, stations, planes = _network_seen_throughout(seed, step)
+            result = adjust_block(Pose.stack([s.T_obj_scan for s in stations]),
+                                  planes + block_observations(stations, [], rates), fixed,
+                                  BlockConfig(data_snooping=False, drift_per_axis=per_axis))
+            assert not result.failed
+            z.append((result.poses.t_xyz[1:] - truth.t_xyz[1:]) / result.sigma_position_m[1:])
+            components.append(result.variance_components)
+        return np.sqrt(np.mean(np.concatenate(z) ** 2, axis=0)), components
+
+    rms, components = adjusted(True)
+    drift = ObservationKind.DRIFT.value
+    found = np.exp(np.mean([[np.log(c[axis_component_name(drift, i)]) for i in range(3)] for c in components],
+                           axis=0))
+    assert 8.0 < found[0] < 32.0 and 1 / 18 < found[1] < 1 / 4.5 and 0.5 < found[2] < 2.0, found
+    floor = np.median([c[axis_component_name(ObservationKind.TRAJECTORY.value, 0)] for c in components])
+    assert floor < 0.04, floor  # the floor's sigma down by more than five times
+    assert np.all((rms > 0.8) & (rms < 1.25)), rms
+    rms_kind, _ = adjusted(False, replace(rates, pos_floor_m=5e-5))
+    assert rms_kind[0] > 1.3, rms_kind

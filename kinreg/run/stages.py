@@ -33,6 +33,7 @@ from kinreg.estimate.drift import (
     regime_coupling,
     rms_time_offset,
     window_velocity_covariance,
+    with_measured_spread,
     with_window_bias,
     with_window_deformation,
 )
@@ -299,13 +300,15 @@ def adjust_with_measured_drift(
             correlation = _correlation_of_deskewed(network, result, rates, prior_rates, config, progress)
             rates = replace(rates, correlation_s=correlation)
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
-        used = rates.coupling
+        used = rates
         rates = replace(estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
                                              measure_correlation=False, links=network.links),
                         correlation_s=correlation)
-        tried.append((used, rates.coupling))
+        rates = with_measured_spread(rates, used, result.variance_components, prior_rates)
+        tried.append((used.coupling, rates.coupling))
         rates = replace(rates, coupling=_settled_coupling(tried))
-        if abs(rates.coupling - used) < _COUPLING_TOLERANCE and (same or round_ + 1 >= config.block.max_relink_rounds):
+        settled = abs(rates.coupling - used.coupling) < _COUPLING_TOLERANCE
+        if settled and (same or round_ + 1 >= config.block.max_relink_rounds):
             break
     # Control points tested against their own sigmas, then the last pass: the trajectory's links
     # coupled with the measured coupling and rates.
@@ -318,7 +321,8 @@ def adjust_with_measured_drift(
             usable, (config.planes.min_sigma_angle_rad, config.planes.min_sigma_d_m)))
     result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
     if used_planes is not planes and network.plane_nodes is not None:
-        network, result = _deskew_settled(network, planes, result, rates, config, progress, trajectories)
+        network, result, rates = _deskew_settled(network, planes, result, rates, prior_rates, config, progress,
+                                                 trajectories)
     misfits, wrong = _warn_trajectory_misfits(result, config.block.alpha, config.matching)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
@@ -350,8 +354,8 @@ _DESKEW_ROUNDS = 4
 
 
 def _deskew_settled(network: Network, planes: Sequence[tuple[Plane, ...]], result: BlockResult, rates: DriftRates,
-                    config: KinregConfig, progress: Progress,
-                    trajectories: Sequence[Trajectory]) -> tuple[Network, BlockResult]:
+                    prior: DriftRates, config: KinregConfig, progress: Progress,
+                    trajectories: Sequence[Trajectory]) -> tuple[Network, BlockResult, DriftRates]:
     """The network's deskewed planes and its adjustment made to agree. The planes of the last pass
     were deskewed with the adjustment before it, and the last pass (plane nodes instead of links)
     moves the stations' corrections: deskewed with its own result, the planes of a GNSS/INS-like
@@ -359,17 +363,20 @@ def _deskew_settled(network: Network, planes: Sequence[tuple[Plane, ...]], resul
     errors of its large walls were 2.1 times their sigmas (0.7 once they agree). Deskewed again
     and adjusted again until no plane moves by more than :data:`_DESKEW_SETTLED` of its sigma
     (each round moves them about half as far as the last); the links are not formed again (a
-    deskew keeps the planes' matches)."""
+    deskew keeps the planes' matches). Each adjustment again is made with the drift's spreads and
+    floors that the one before measured (:func:`~kinreg.estimate.drift.with_measured_spread`);
+    returns the rates the last was made with."""
     for _ in range(_DESKEW_ROUNDS):
         deskewed, _shift = deskewed_planes(network.stations, planes, result, rates, trajectories)
         moved = _largest_move(network.planes or (), deskewed)
         if moved <= _DESKEW_SETTLED:
-            return network, result
+            break
         log.info("planes deskewed again with the last adjustment (moved by up to %.2f sigma)", moved)
+        rates = with_measured_spread(rates, rates, result.variance_components, prior)
         network = replace(network, planes=tuple(deskewed),
                           velocity_cov=window_velocity_covariance(network.stations, result, rates))
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
-    return network, result
+    return network, result, rates
 
 
 def _largest_move(before: Sequence[tuple[Plane, ...]], after: Sequence[tuple[Plane, ...]]) -> float:
@@ -490,7 +497,10 @@ def link_stations(
     initial = stations
     if adjusted is not None:
         stations = [replace(s, T_obj_scan=adjusted.poses[k]) for k, s in enumerate(stations)]
-        floor = pose_sigmas(rates.pos_floor_m, rates.rot_floor_rad)
+        # the drift's floors of the scanner's specification: the prior of a pair covers the matching's
+        # own errors, not only the trajectory's floor that an adjustment measured
+        prior = DriftRates.from_config(drift)
+        floor = pose_sigmas(prior.pos_floor_m, prior.rot_floor_rad)
         own = np.sqrt(np.maximum(np.diagonal(adjusted.cov_xi, axis1=1, axis2=2), 0.0))
         sigmas = 2.0 * np.hypot(own, floor / np.sqrt(2.0))
     pairs = station_pairs(stations, matching, static, loops)
