@@ -192,10 +192,8 @@ class BlockConfig:
     # Where the drift velocity is an unknown of the trajectory's links: a variance component per
     # object axis of its change from one link to the next, and per position and rotation of the
     # links' floor, up or down (their residuals show their whole error); the spreads and floors
-    # they measure are the next adjustment's (kinreg.estimate.drift.with_measured_spread). Off:
-    # more accurate on the simulated matrix, but a short SLAM-like run's coupling read 1 with it
-    # (benchmarks/RESULTS.md, twenty-second session).
-    drift_per_axis: bool = False
+    # they measure are the next adjustment's (kinreg.estimate.drift.with_measured_spread).
+    drift_per_axis: bool = True
     disconnected: Disconnected = Disconnected.STOP
     on_failure: OnFailure = OnFailure.STOP
     # Match the pairs again from the adjusted poses and adjust again, until the linked pairs no

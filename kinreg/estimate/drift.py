@@ -713,6 +713,10 @@ def with_measured_spread(rates: DriftRates, used: DriftRates, components: Mappin
 
 # Fewer plane links of consecutive-enough stations than this leave the coupling to the adjusted steps.
 _MIN_COUPLING_LINKS = 5
+# The planes tell the coupling where its two regimes (0 and 1) lie at least this many of its sigmas
+# apart; a short run with little attitude drift read 0.87 at a sigma of 0.71 (a SLAM-like run; the
+# trajectory's own steps read 0.19 and its stations came 1.8 mm off instead of 0.6).
+_COUPLING_APART = 3.0
 # Plane links over more than this many station spacings carry too much of the trajectory's own drift.
 _COUPLING_SPACINGS = 3.0
 
@@ -720,7 +724,8 @@ _COUPLING_SPACINGS = 3.0
 def coupling_from_links(stations: Sequence[Station], links: Sequence[Link], result: BlockResult,
                         rates: DriftRates) -> float | None:
     """The coupling ``kappa`` (:class:`DriftRates`) that the plane links between stations of one run
-    point to, or None with fewer than a handful of them.
+    point to, or None with fewer than a handful of them or where they do not tell its two regimes
+    apart (:data:`_COUPLING_APART`).
 
     For a link of scans ``a`` and ``b``, the trajectory predicts the step in scan ``a``'s frame in
     two ways: ``u = R_a^T (x_b - x_a)`` with the trajectory's own attitude (its relative motion is
@@ -769,8 +774,8 @@ def coupling_from_links(stations: Sequence[Station], links: Sequence[Link], resu
             J = R_u.T @ skew(w)
             den -= float(np.trace(W[:3, :3] @ J @ cov_xi[a][3:, 3:] @ J.T))
         n += 1
-    if n < _MIN_COUPLING_LINKS or den <= 0.0:
-        return None
+    if n < _MIN_COUPLING_LINKS or den < _COUPLING_APART**2:
+        return None  # too few links, or the two regimes are not told apart (kappa's sigma 1/sqrt(den))
     return float(np.clip(num / den, 0.0, 1.0))
 
 
