@@ -18,7 +18,9 @@ per-observation test statistics and redundancy numbers from the 6x6 blocks of th
 (selected inversion: the inverse is never formed densely), data snooping of the links and station
 observations (the worst observation above the critical value is removed and the network
 re-adjusted; the trajectory's links are tested but never removed), and optionally a variance
-component per observation kind so that reported standard deviations follow the residuals.
+component per observation kind so that reported standard deviations follow the residuals; where
+the drift velocity is an unknown, one per object axis of its change and per position and rotation
+of the trajectory links' floor (:func:`~kinreg.estimate.snooping.axis_components`).
 """
 
 from __future__ import annotations

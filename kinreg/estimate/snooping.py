@@ -325,7 +325,7 @@ def axis_component_name(kind: str, axis: int) -> str:
 
 
 def axis_components(tests: ObservationTests, P: FloatArray, axes: FloatArray, kind: str,
-                    groups: Sequence[Sequence[int]] = tuple((i,) for i in range(6)),
+                    groups: Sequence[Sequence[int]] = ((0,), (1,), (2,), (3,), (4,), (5,)),
                     gain: float | None = None) -> tuple[FloatArray, np.ndarray]:
     """Förstner's estimate per group of axes of the observations of ``kind``, whose weights ``P``
     (k, 6, 6: the tests' own, under the current ``axes`` weights) do not couple the groups: per group
