@@ -524,7 +524,8 @@ def test_an_adjustment_at_its_minimum_to_a_thousandth_of_a_sigma_has_converged(m
     monkeypatch.setattr(block, "_pose_residuals", approximate)
     monkeypatch.setattr(block, "_FIRST_DAMPING", 1e-4)  # and the damping as it started then
     poses, obs, held = _recorded_block("block_gnss_ins_tilted_crawl.npz")
-    # (the drift's components per axis kept: the crawl ends at its first round, which they follow)
+    # (without the drift's components per axis, whose rounds would move the result on from the round
+    # where the crawl ends)
     config = BlockConfig(max_iterations=50, drift_per_axis=False)
     result = adjust_block(poses, obs, held, config)
     assert not result.failed and result.iterations < 10
