@@ -526,7 +526,7 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
                                                                                     normal, config, progress)
             eig = _eigen_of(a, eigen, weights, axes)
             tests, omega, redundancy, Qxx_blocks = _test_observations(state, a, links, fixed, free_index, factor,
-                                                                      linearised, eig)
+                                                                      linearised, eig, per_axis=bool(groups))
             del linearised
         except EstimationError:
             if not last_round:
@@ -820,19 +820,19 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
     return (poses, velocity), iterations, factor, converged, (e, J)
 
 
-def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None):
+def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None, per_axis=False):
     """The observations' tests (:func:`~kinreg.estimate.snooping.observation_tests`) at ``state``,
     the total e^T P e and redundancy, and the stations' covariance blocks. ``linearised``: ``(e, J)``
     at ``state`` if at hand; ``eig``: the eigenvalues and vectors of ``a.P`` if at hand."""
     e, J = _linearise(*state, a) if linearised is None else linearised
-    figures, diag = observation_tests(e, J, a.P, _columns(a, free_index), factor, eig)
+    figures, diag = observation_tests(e, J, a.P, _columns(a, free_index), factor, eig, per_axis)
     statistic, dof, r_k, normalised, vtpv, least, cov_adjusted, r_axes = figures
     keep = dof > 0
     index = a.idx[keep]
     tests = ObservationTests(index, a.kinds[keep], links.i[index], links.j[index], statistic[keep], dof[keep],
                              r_k[keep], normalised[keep], np.zeros(len(index), dtype=bool), vtpv[keep],
                              least[keep], cov_adjusted[keep], e[keep],  # a copy: e may be written into later
-                             r_axes[keep])
+                             None if r_axes is None else r_axes[keep])
     n_stations = int(np.count_nonzero(~fixed))
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag[:n_stations]
 

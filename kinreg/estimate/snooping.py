@@ -91,7 +91,8 @@ _CHUNK = 1 << 14
 
 
 def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndarray, factor: SparseFactor,
-                      eig: tuple[FloatArray, FloatArray] | None = None) -> tuple[tuple[np.ndarray, ...], FloatArray]:
+                      eig: tuple[FloatArray, FloatArray] | None = None,
+                      per_axis: bool = False) -> tuple[tuple[np.ndarray | None, ...], FloatArray]:
     """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
     vectorised over observations (each restricted to the directions its information determines).
 
@@ -100,7 +101,8 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
     (block ordered), ``eig`` the eigenvalues and vectors of ``P`` if at hand. Returns
     ``(statistic, dof, redundancy, normalised, vtpv, min_redundancy, cov_adjusted, redundancy_axes)``
     (k,) each (``cov_adjusted`` (k, 6, 6): of the relative pose from the first two slots;
-    ``redundancy_axes`` (k, 6): the diagonal of the redundancy matrix) and the diagonal blocks of Qxx.
+    ``redundancy_axes`` (k, 6): the diagonal of the redundancy matrix, only ``per_axis``, else
+    None) and the diagonal blocks of Qxx.
     """
     slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
     both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
@@ -119,22 +121,26 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
     statistic, r_k, normalised, vtpv, least = (np.empty(k) for _ in range(5))
     dof = np.empty(k, dtype=np.int64)
     cov_adjusted = np.empty((k, 6, 6))
-    r_axes = np.empty((k, 6))
+    r_axes = np.empty((k, 6)) if per_axis else None
 
     def step(start: int) -> None:
         c = slice(start, min(start + _CHUNK, k))
         w, V = np.linalg.eigh(0.5 * (P[c] + np.transpose(P[c], (0, 2, 1)))) if eig is None else (eig[0][c], eig[1][c])
-        figures = _figures(e[c], J[c], cols[c], slots, [at[c] for at in off_at], diag, off, w, V)
-        statistic[c], dof[c], r_k[c], normalised[c], vtpv[c], least[c], cov_adjusted[c], r_axes[c] = figures
+        figures = _figures(e[c], J[c], cols[c], slots, [at[c] for at in off_at], diag, off, w, V, per_axis)
+        (statistic[c], dof[c], r_k[c], normalised[c], vtpv[c], least[c], cov_adjusted[c]), axes_c = figures
+        if r_axes is not None:
+            r_axes[c] = axes_c
 
     in_threads(step, range(0, k, _CHUNK), len(diag))
     return (statistic, dof, r_k, normalised, vtpv, least, cov_adjusted, r_axes), diag
 
 
 def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], off_at: list[np.ndarray],
-             diag: FloatArray, off: FloatArray, w: FloatArray, V: FloatArray) -> tuple[np.ndarray, ...]:
+             diag: FloatArray, off: FloatArray, w: FloatArray, V: FloatArray,
+             per_axis: bool = False) -> tuple[tuple[np.ndarray, ...], np.ndarray | None]:
     """:func:`observation_tests`' figures of some observations (``off_at``: per slot pair their blocks
-    in ``off``, -1: none; ``w``, ``V``: the eigenvalues and vectors of their weights)."""
+    in ``off``, -1: none; ``w``, ``V``: the eigenvalues and vectors of their weights), and with
+    ``per_axis`` the diagonal of their redundancy matrices (else None)."""
     slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
     # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
     # small-matrix products are several times faster so than on gathered or transposed views.
@@ -160,11 +166,12 @@ def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], o
             cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
     del J_s, J_sT
     determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
-    # the redundancy matrix's diagonal, I - P J Qxx J^T (P restricted to its determined directions)
-    P_det = (V * np.where(determined, w, 0.0)[:, None, :]) @ np.transpose(V, (0, 2, 1))
-    r_axes = np.where(np.diagonal(P_det, axis1=1, axis2=2) > 0.0,
-                      1.0 - np.einsum("kij,kji->ki", P_det, JQJ), 0.0)
-    del P_det
+    r_axes = None
+    if per_axis:  # the redundancy matrix's diagonal, I - P J Qxx J^T (P restricted to its determined directions)
+        P_det = (V * np.where(determined, w, 0.0)[:, None, :]) @ np.transpose(V, (0, 2, 1))
+        r_axes = np.where(np.diagonal(P_det, axis1=1, axis2=2) > 0.0,
+                          1.0 - np.einsum("kij,kji->ki", P_det, JQJ), 0.0)
+        del P_det
     w = np.where(determined, w, 1.0)
     z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
     VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
@@ -189,7 +196,7 @@ def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], o
     statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
     # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
     normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
-    return statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted, r_axes
+    return (statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted), r_axes
 
 
 @functools.lru_cache(maxsize=1024)
