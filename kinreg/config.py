@@ -190,11 +190,12 @@ class BlockConfig:
     variance_components: bool = True
     max_variance_rounds: int = 10
     # Where the drift velocity is an unknown of the trajectory's links: a variance component per
-    # object axis of its change from one link to the next, and per position and rotation of the
-    # links' floor, up or down (their residuals show their whole error); the spreads and floors
-    # they measure are the next adjustment's (kinreg.estimate.drift.with_measured_spread). Off by
-    # default: more accurate over the simulated matrix, but the floor it lowers covered errors the
-    # model leaves (tilted head, GNSS/INS-like: x's errors 2-2.7 times its sigmas; RESULTS.md).
+    # group of object axes of its change from one link to the next (horizontal, height, tilts,
+    # heading), and per position and rotation of the links' floor, up or down (their residuals
+    # show their whole error); the spreads and floors they measure are the next adjustment's
+    # (kinreg.estimate.drift.with_measured_spread). Off by default: more accurate over the
+    # simulated matrix, but the floor it lowers covered errors the model leaves (tilted head,
+    # GNSS/INS-like: x's errors 1.6 times its sigmas, pooled; RESULTS.md).
     drift_per_axis: bool = False
     disconnected: Disconnected = Disconnected.STOP
     on_failure: OnFailure = OnFailure.STOP

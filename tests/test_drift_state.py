@@ -451,8 +451,8 @@ def test_the_drift_velocity_is_measured_per_axis_by_its_changes():
     with a model whose change follows each axis's level (x a quarter of the step, y three times
     it) and a floor five times the trajectory's: the variance components per axis find the
     change on each axis (x ~16, y ~1/9) and bring the floor down, and the errors follow their
-    sigmas. With one component for the kind (raised only) and the trajectory's true floor, x's
-    sigmas are too small."""
+    sigmas (x and y in one group, the horizontal). With one component for the kind (raised only)
+    and the trajectory's true floor, x's sigmas are too small."""
     from kinreg.estimate.snooping import axis_component_name
 
     step = np.array([5e-5, 5e-5, 5e-5, 1e-6, 1e-6, 1e-6])
@@ -478,6 +478,8 @@ def test_the_drift_velocity_is_measured_per_axis_by_its_changes():
     found = np.exp(np.mean([[np.log(c[axis_component_name(drift, i)]) for i in range(3)] for c in components],
                            axis=0))
     assert 8.0 < found[0] < 32.0 and 1 / 18 < found[1] < 1 / 4.5 and 0.5 < found[2] < 2.0, found
+    # x and y share one component (the horizontal): the same change on both, whatever each's model
+    assert np.isclose(found[0] * 0.25**2, found[1] * 3.0**2, rtol=1e-9), found
     floor = np.median([c[axis_component_name(ObservationKind.TRAJECTORY.value, 0)] for c in components])
     assert floor < 0.04, floor  # the floor's sigma down by more than five times
     assert np.all((rms > 0.8) & (rms < 1.25)), rms

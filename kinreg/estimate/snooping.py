@@ -320,7 +320,8 @@ def models_rejected(tests: Sequence[ObservationTest], components: dict[str, floa
 
 
 # How the variance components per axis are named in a result (BlockResult.variance_components):
-# the drift velocity's change per object axis, the trajectory links' floor per position and rotation.
+# the drift velocity's change per object axis (the axes of one group share theirs), the trajectory
+# links' floor per position and rotation.
 _AXIS_NAMES = ("x", "y", "z", "turn x", "turn y", "turn z")
 
 
@@ -339,7 +340,7 @@ def axis_components(tests: ObservationTests, P: FloatArray, axes: FloatArray, ki
     the weighted squares ``e_g^T P_gg e_g`` over the group's redundancy (the trace of its block of
     I - P J Qxx J^T), taken both ways, to at most :data:`MAX_WEIGHT_GAIN` times the a-priori weight
     (or its inverse). Such kinds: the drift velocity's change from one link to the next
-    (``DRIFT``, per axis), whose residual is the change itself, and the trajectory's links once
+    (``DRIFT``, per group of object axes), whose residual is the change itself, and the trajectory's links once
     the drift velocity is an unknown of theirs (``TRAJECTORY``, position and rotation), whose
     residual is then their floor alone. Groups with a redundancy under 5 keep their weight: where
     no plane fixes an axis the residual follows the model and says nothing of it. ``gain``: the
