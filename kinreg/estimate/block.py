@@ -20,7 +20,8 @@ observations (the worst observation above the critical value is removed and the 
 re-adjusted; the trajectory's links are tested but never removed), and optionally a variance
 component per observation kind so that reported standard deviations follow the residuals; where
 the drift velocity is an unknown, one per group of object axes of its change (horizontal, height,
-tilts, heading) and per position and rotation of the trajectory links' floor (:func:`~kinreg.estimate.snooping.axis_components`).
+tilts, heading) and per position and rotation of the trajectory links' floor
+(:func:`~kinreg.estimate.snooping.axis_components`).
 """
 
 from __future__ import annotations
