@@ -340,9 +340,9 @@ def axis_components(tests: ObservationTests, P: FloatArray, axes: FloatArray, ki
     the weighted squares ``e_g^T P_gg e_g`` over the group's redundancy (the trace of its block of
     I - P J Qxx J^T), taken both ways, to at most :data:`MAX_WEIGHT_GAIN` times the a-priori weight
     (or its inverse). Such kinds: the drift velocity's change from one link to the next
-    (``DRIFT``, per group of object axes), whose residual is the change itself, and the trajectory's links once
-    the drift velocity is an unknown of theirs (``TRAJECTORY``, position and rotation), whose
-    residual is then their floor alone. Groups with a redundancy under 5 keep their weight: where
+    (``DRIFT``, per group of object axes), whose residual is the change itself, and the
+    trajectory's links once the drift velocity is an unknown of theirs (``TRAJECTORY``, position
+    and rotation), whose residual is then their floor alone. Groups with a redundancy under 5 keep their weight: where
     no plane fixes an axis the residual follows the model and says nothing of it. ``gain``: the
     bound of the weight's rise, if not :data:`MAX_WEIGHT_GAIN`. Returns the new axes' weights
     (6,) and which were estimated."""
