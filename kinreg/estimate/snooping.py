@@ -342,10 +342,10 @@ def axis_components(tests: ObservationTests, P: FloatArray, axes: FloatArray, ki
     (or its inverse). Such kinds: the drift velocity's change from one link to the next
     (``DRIFT``, per group of object axes), whose residual is the change itself, and the
     trajectory's links once the drift velocity is an unknown of theirs (``TRAJECTORY``, position
-    and rotation), whose residual is then their floor alone. Groups with a redundancy under 5 keep their weight: where
-    no plane fixes an axis the residual follows the model and says nothing of it. ``gain``: the
-    bound of the weight's rise, if not :data:`MAX_WEIGHT_GAIN`. Returns the new axes' weights
-    (6,) and which were estimated."""
+    and rotation), whose residual is then their floor alone. Groups with a redundancy under 5 keep
+    their weight: where no plane fixes an axis the residual follows the model and says nothing of
+    it. ``gain``: the bound of the weight's rise, if not :data:`MAX_WEIGHT_GAIN`. Returns the new
+    axes' weights (6,) and which were estimated."""
     group = (tests.kind == kind) & ~tests.rejected & (tests.j >= 0)
     out = np.asarray(axes, dtype=float).copy()
     estimated = np.zeros(6, dtype=bool)
