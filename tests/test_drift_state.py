@@ -485,3 +485,35 @@ def test_the_drift_velocity_is_measured_per_axis_by_its_changes():
     assert np.all((rms > 0.8) & (rms < 1.25)), rms
     rms_kind, _ = adjusted(False, replace(rates, pos_floor_m=5e-5))
     assert rms_kind[0] > 1.3, rms_kind
+
+
+@pytest.mark.parametrize(("model", "expected"), [("gnss", 1.0), ("slam", 0.0)])
+def test_the_coupling_is_the_one_the_network_fits_best(model, expected):
+    """The network's least-squares cost (a-priori weights) at the couplings 0, 1/2 and 1: the
+    parabola's vertex names the regime the trajectory drifted in (GNSS/INS-like 1, SLAM-like 0),
+    without reading it off an adjustment's attitudes."""
+    from kinreg.estimate.drift import coupling_by_fit
+
+    prior = DriftRates(np.full(3, 3e-4), np.full(3, 5e-5), 1e-3, 1e-4)
+    stations, links, _ = _coupling_case(model, 0.0)
+    fixed = np.arange(len(stations)) == 0
+    initial = Pose.stack([s.T_obj_scan for s in stations])
+    plain = BlockConfig(data_snooping=False, variance_components=False)
+    couplings, costs = (0.0, 0.5, 1.0), []
+    for kappa in couplings:
+        result = adjust_block(initial, block_observations(stations, links, replace(prior, coupling=kappa)), fixed,
+                              plain)
+        assert not result.failed
+        costs.append(result.sigma0**2 * result.redundancy)
+    found = coupling_by_fit(couplings, costs)
+    assert found == pytest.approx(expected, abs=0.2), (costs, found)
+
+
+def test_the_coupling_by_fit_is_the_parabola_s_vertex_within_the_bounds():
+    from kinreg.estimate.drift import coupling_by_fit
+
+    x = (0.0, 0.5, 1.0)
+    assert coupling_by_fit(x, [(k - 0.8) ** 2 + 3.0 for k in x]) == pytest.approx(0.8)
+    assert coupling_by_fit(x, [(k - 1.7) ** 2 for k in x]) == 1.0  # the vertex beyond 1
+    assert coupling_by_fit(x, [162.0, 336.0, 413.0]) == 0.0  # opens downwards: the cheaper end
+    assert coupling_by_fit(x, [np.inf, 5.0, 4.0]) == 1.0  # a failed adjustment: the cheapest tried

@@ -606,7 +606,7 @@ def _walk_velocities(stations: Sequence[Station], poses: Pose) -> dict[int, Floa
 
 def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior: DriftRates,
                          floor_share: float = 1.0, measure_correlation: bool = True,
-                         links: Sequence[Link] = ()) -> DriftRates:
+                         links: Sequence[Link] = (), coupling: float | None = None) -> DriftRates:
     """The trajectory's error model measured by the adjustment, from consecutive quasi-static
     stations of each run: the adjusted step ``y`` against the two predictions of the trajectory's
     step, ``u`` (its step in the scan frame was right: the initial step turned by the first
@@ -621,7 +621,8 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     the correction's rotation, each less the adjustment's own noise in it (the covariance of the
     adjusted relative pose, from the block's trajectory-link tests). The estimate is bounded below
     by ``floor_share`` times the prior rates (1: it only ever raises them); with too few stations
-    to measure, the prior is returned.
+    to measure, the prior is returned. A given ``coupling`` is taken as it is (the one the network
+    fits best, :func:`coupling_by_fit`).
 
     Smooth drift is invisible in residuals (consecutive trajectory links err alike), but the
     corrections themselves show it wherever planes fix the stations; where no plane fixes a
@@ -661,7 +662,7 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
     Y, U, W = np.array(y), np.array(u), np.array(w)
     c = np.array(weight)[:, None]
     spread = float(np.sum(c * (W - U) ** 2))
-    kappa = coupling_from_links(stations, links, result, prior)
+    kappa = coupling_from_links(stations, links, result, prior) if coupling is None else coupling
     if kappa is None:
         kappa = float(np.clip(np.sum(c * (W - U) * (Y - U)) / spread, 0.0, 1.0)) if spread > 1e-12 else 0.0
     pos_v = (Y - U - kappa * (W - U)) / np.array(dts)[:, None]
@@ -675,6 +676,21 @@ def estimate_drift_rates(stations: Sequence[Station], result: BlockResult, prior
                       np.maximum(floor_share * prior.rot_rad_per_s, rot_rate),
                       prior.pos_floor_m, prior.rot_floor_rad, estimated=True, coupling=kappa,
                       correlation_s=correlation)
+
+
+def coupling_by_fit(couplings: Sequence[float], costs: Sequence[float]) -> float:
+    """The coupling (:class:`DriftRates`) at which a network's least-squares cost is least, within
+    [0, 1], from its ``costs`` at three ``couplings``: the vertex of the parabola through them, or
+    the cheaper end where it opens downwards or is flat. The coupling enters each trajectory link
+    linearly, so the cost is close to a parabola in it; a non-finite cost (an adjustment that
+    failed) leaves the coupling at the cheapest one tried."""
+    x, y = np.asarray(couplings, dtype=float), np.asarray(costs, dtype=float)
+    if not np.all(np.isfinite(y)):
+        return float(x[np.argmin(np.where(np.isfinite(y), y, np.inf))])
+    a, b, _ = np.polyfit(x, y, 2)
+    if a <= 0.0:
+        return float(x[np.argmin(y)])
+    return float(np.clip(-b / (2.0 * a), 0.0, 1.0))
 
 
 # The drift's spreads and floors measured by variance components stay within these shares of the prior.
