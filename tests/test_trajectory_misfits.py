@@ -123,3 +123,30 @@ def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Pa
     for name in ("stations.csv", "trajectory_corrected.txt", "corrected.laz"):
         assert (tmp_path / "kept" / name).read_bytes() == (tmp_path / "once" / name).read_bytes(), name
     assert json.loads((tmp_path / "kept" / "report.json").read_text())["slicing"]["window_s"] == 6.0
+
+
+def test_a_network_that_settles_on_a_coupling_it_does_not_fit_best_is_exit_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The adjusted network is asked which coupling of the drift it fits best; where that is of
+    another regime than the one its rounds settled on, the rounds start again from it, and where they
+    settle apart from it again, the network is no result. Here the fit always names the other regime."""
+    import kinreg.run.stages as stages
+
+    asked: list[float] = []
+
+    def other_regime(network, rates, config, progress, result):
+        asked.append(rates.coupling)
+        return 1.0 if rates.coupling < 0.5 else 0.0
+
+    monkeypatch.setattr(stages, "_coupling_by_fit", other_regime)
+    out = tmp_path / "out"
+    args = ["process", "-t", SAMPLE / "run_trajectory.txt", "-c", SAMPLE / "run_cloud.laz", "-o", out]
+    code, _, err = run_cli(args, capsys)
+    lines = message_lines(err)
+    assert code == 1 and "Traceback" not in err
+    assert len(lines) == 1, err
+    assert "fits a drift coupling of" in lines[0] and "started from either" in lines[0]
+    assert "nothing was written" in lines[0]
+    assert result_files(out) == []
+    assert asked == [0.0, 0.0, 0.0]  # the first network, the last, and the last again started from 1

@@ -354,10 +354,19 @@ def estimate_quasi_static(stack: contextlib.ExitStack, folder: RunCache, inputs:
     # planes lie apart, they show plane links that agree on a wrong match no test found (or a jump
     # the detector missed). The global test can pass all the same, and the stations be 30-60 mm
     # RMS off (held-out runs, world drift 0.26 m). A smaller misfit stays a warning in the report.
+    failure = ""
     if est.adjusted.wrong_matches:
-        failed = dataclasses.replace(est.adjusted.result, failure=(
-            f"the trajectory disagrees with the adjusted network between {misfit_text(est.adjusted.wrong_matches)}, "
-            "beyond its model: plane links that agree on a wrong match, or a jump in the trajectory"))
+        failure = (f"the trajectory disagrees with the adjusted network between "
+                   f"{misfit_text(est.adjusted.wrong_matches)}, beyond its model: plane links that agree on a wrong "
+                   "match, or a jump in the trajectory")
+    # The drift model's coupling is the run's own where the adjusted network fits it best; a network
+    # that settles on another one, started from either, can pass its global test 36 mm off.
+    elif est.adjusted.coupling_disagrees is not None:
+        settled, fitted = est.adjusted.coupling_disagrees
+        failure = (f"the adjusted network fits a drift coupling of {fitted:.2f} better than the {settled:.2f} it "
+                   "settled on, started from either: the trajectory's error model is not settled")
+    if failure:
+        failed = dataclasses.replace(est.adjusted.result, failure=failure)
         fail_adjustment(AdjustmentFailedError(checked_reason(failed), failed), est.adjusted.network, config, folder,
                         inputs_report(inputs.runs, est.kinematic.trajectories, est.sliced, inputs.static,
                                       inputs.reference))

@@ -238,6 +238,9 @@ class AdjustedNetwork:
     # those of them a wrong plane match can explain (kinreg.estimate.snooping.wrong_match_misfits):
     # such a network is no result
     wrong_matches: tuple[ObservationTest, ...] = ()
+    # (settled on, fitted best) where the adjusted network fits a coupling of another regime better
+    # than the one its rounds settled on, even when started from that one: such a network is no result
+    coupling_disagrees: tuple[float, float] | None = None
 
 
 def adjust_with_measured_drift(
@@ -249,6 +252,7 @@ def adjust_with_measured_drift(
     executor: ExecutorContext | None = None,
     trajectories: Sequence[Trajectory] = (),
     points_deskewed: FloatArray | None = None,
+    start_coupling: float | None = None,
 ) -> AdjustedNetwork:
     """The block adjustment of ``network`` with the drift it measures: the first adjustment measures
     the drift rates and the coupling (:func:`~kinreg.estimate.drift.estimate_drift_rates`); the pairs
@@ -258,15 +262,24 @@ def adjust_with_measured_drift(
     and the stretches carried by the trajectory alone get honest sigmas. ``points_deskewed``: the
     planes were detected on points an earlier adjustment deskewed (:func:`~kinreg.estimate.drift.deskewed_points`),
     and this (n, 6, 6) is the drift velocity's covariance that deskew left
-    (:func:`~kinreg.estimate.drift.window_velocity_covariance`): their parameters are not deskewed again."""
+    (:func:`~kinreg.estimate.drift.window_velocity_covariance`): their parameters are not deskewed again.
+
+    The coupling of the first adjustment is the one its network fits best (:func:`_coupling_by_fit`),
+    or ``start_coupling``; the last pass's network is asked the same, and where it fits a coupling
+    of another regime better than the one the rounds settled on (:data:`_COUPLING_DISAGREES`), the
+    rounds start again from that one, once; ``coupling_disagrees`` says that they settled apart
+    from it again."""
+    given = (network, planes, static, config, progress, executor, trajectories, points_deskewed)
     prior_rates = DriftRates.from_config(config.drift)
     if points_deskewed is not None:
         network = replace(network, velocity_cov=points_deskewed)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
-    coupling = _coupling_by_fit(network, prior_rates, config.block, progress, result)
+    coupling = (_coupling_by_fit(network, prior_rates, config.block, progress, result) if start_coupling is None
+                else start_coupling)
     if coupling != prior_rates.coupling:
-        log.info("the first network fits a coupling of %.2f best (%s): adjusted again with it", coupling,
-                 replace(prior_rates, coupling=coupling).regime)
+        log.info("the first network adjusted again with a coupling of %.2f (%s): the one %s", coupling,
+                 replace(prior_rates, coupling=coupling).regime,
+                 "it fits best" if start_coupling is None else "the last network fitted best")
         result = _checked(adjust_network(network, replace(prior_rates, coupling=coupling), config.block, progress,
                                          previous=result))
     rates = estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
@@ -331,14 +344,29 @@ def adjust_with_measured_drift(
     if used_planes is not planes and network.plane_nodes is not None:
         network, result, rates = _deskew_settled(network, planes, result, rates, prior_rates, config, progress,
                                                  trajectories)
+    fitted = _coupling_by_fit(network, rates, config.block, progress, result)
+    disagrees = None
+    if abs(fitted - rates.coupling) > _COUPLING_DISAGREES:
+        if start_coupling is None:
+            log.warning("the adjusted network fits a coupling of %.2f (%s) better than the %.2f its rounds "
+                        "settled on: adjusted again from %.2f", fitted, replace(rates, coupling=fitted).regime,
+                        rates.coupling, fitted)
+            return adjust_with_measured_drift(*given, start_coupling=fitted)
+        disagrees = (rates.coupling, fitted)
     misfits, wrong = _warn_trajectory_misfits(result, config.block.alpha, config.matching)
     if not config.block.scan_frames:  # else the block carries the window bias (kinreg.estimate.frames)
         result = with_window_bias(result, network.stations, rates)
-    return AdjustedNetwork(network, result, rates, tuple(misfits), tuple(wrong))
+    return AdjustedNetwork(network, result, rates, tuple(misfits), tuple(wrong), disagrees)
 
 
 # The first network's least-squares cost is taken at these couplings (kinreg.estimate.drift.coupling_by_fit).
 _COUPLINGS_TRIED = (0.0, 0.5, 1.0)
+# The adjusted network fits another coupling better than the one its rounds settled on where the
+# two lie further apart than this (the width of a regime, kinreg.estimate.drift.MIXED_COUPLING).
+# Healthy runs of the sample building agree (costs at the regime ends 50-60 times apart); a run that
+# settled on 0.32 from a first coupling read off wrong attitudes fitted 0.83 (cost 642 at 1, 810 at
+# 0.32) and was 36 mm off.
+_COUPLING_DISAGREES = 0.25
 
 
 def _coupling_by_fit(network: Network, prior: DriftRates, config: BlockConfig, progress: Progress,
