@@ -359,7 +359,7 @@ def adjust_with_measured_drift(
     return AdjustedNetwork(network, result, rates, tuple(misfits), tuple(wrong), disagrees)
 
 
-# The first network's least-squares cost is taken at these couplings (kinreg.estimate.drift.coupling_by_fit).
+# A network's least-squares cost is taken at these couplings (kinreg.estimate.drift.coupling_by_fit).
 _COUPLINGS_TRIED = (0.0, 0.5, 1.0)
 # The adjusted network fits another coupling better than the one its rounds settled on where the
 # two lie further apart than this (the width of a regime, kinreg.estimate.drift.MIXED_COUPLING).
@@ -369,12 +369,13 @@ _COUPLINGS_TRIED = (0.0, 0.5, 1.0)
 _COUPLING_DISAGREES = 0.25
 
 
-def _coupling_by_fit(network: Network, prior: DriftRates, config: BlockConfig, progress: Progress,
+def _coupling_by_fit(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
                      result: BlockResult) -> float:
-    """The coupling of the trajectory's attitude error into its steps that the first network fits
-    best (:func:`~kinreg.estimate.drift.coupling_by_fit`): its least-squares cost with the a-priori
-    weights (no variance components, no data snooping) at :data:`_COUPLINGS_TRIED`, the coupling an
-    unknown of the adjustment in effect. Not read off the first adjustment's attitudes
+    """The coupling of the trajectory's attitude error into its steps that ``network`` fits best
+    with ``rates`` (:func:`~kinreg.estimate.drift.coupling_by_fit`): its least-squares cost with the
+    a-priori weights (no variance components, no data snooping) at :data:`_COUPLINGS_TRIED`, the
+    coupling an unknown of the adjustment in effect; a coupling that names a regime is that
+    regime's. For the first network it is not read off the first adjustment's attitudes
     (:func:`~kinreg.estimate.drift.coupling_from_links`): that adjustment is made with the prior's
     coupling, and where the prior is the wrong regime its attitudes are wrong where few planes fix
     them, and lean the coupling read off them towards the prior (a GNSS/INS-like run of the sample
@@ -383,7 +384,7 @@ def _coupling_by_fit(network: Network, prior: DriftRates, config: BlockConfig, p
     plain = replace(config, variance_components=False, data_snooping=False)
     costs = []
     for kappa in _COUPLINGS_TRIED:
-        fit = adjust_network(network, replace(prior, coupling=kappa), plain, progress, previous=result)
+        fit = adjust_network(network, replace(rates, coupling=kappa), plain, progress, previous=result)
         costs.append(fit.sigma0**2 * fit.redundancy if not fit.failed else np.inf)
     return regime_coupling(coupling_by_fit(_COUPLINGS_TRIED, costs))
 
