@@ -517,3 +517,14 @@ def test_the_coupling_by_fit_is_the_parabola_s_vertex_within_the_bounds():
     assert coupling_by_fit(x, [(k - 1.7) ** 2 for k in x]) == 1.0  # the vertex beyond 1
     assert coupling_by_fit(x, [162.0, 336.0, 413.0]) == 0.0  # opens downwards: the cheaper end
     assert coupling_by_fit(x, [np.inf, 5.0, 4.0]) == 1.0  # a failed adjustment: the cheapest tried
+
+
+def test_a_coupling_fits_better_only_where_the_cost_falls_significantly():
+    """The coupling as one more unknown: an F-test of the fall in cost against the cost's own sigma0.
+    A network without redundancy (a cost of ~0 at every coupling) tells nothing."""
+    from kinreg.estimate.drift import fits_better
+
+    assert fits_better(642.0, 810.0, 500.0, 0.001)  # the sample's run that settled on 0.32
+    assert not fits_better(642.0, 650.0, 500.0, 0.001)  # 8 of 1.3 per unit: within the noise
+    assert not fits_better(6.8e-11, 3.0e-10, 0.0, 0.001)
+    assert fits_better(80.0, 95.0, 78.0, 0.001) and not fits_better(80.0, 90.0, 78.0, 0.001)  # F(1, 78) 11.7

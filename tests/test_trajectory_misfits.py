@@ -135,7 +135,7 @@ def test_a_network_that_settles_on_a_coupling_it_does_not_fit_best_is_exit_1(
 
     asked: list[float] = []
 
-    def other_regime(network, rates, config, progress, result):
+    def other_regime(network, rates, config, progress, result, against):
         asked.append(rates.coupling)
         return 1.0 if rates.coupling < 0.5 else 0.0
 

@@ -693,6 +693,18 @@ def coupling_by_fit(couplings: Sequence[float], costs: Sequence[float]) -> float
     return float(np.clip(-b / (2.0 * a), 0.0, 1.0))
 
 
+def fits_better(cost: float, cost_against: float, redundancy: float, alpha: float) -> bool:
+    """Whether a network's least-squares ``cost`` with one coupling is significantly lower than its
+    ``cost_against`` with another (the coupling as one more unknown: F-test with 1 and
+    ``redundancy`` degrees of freedom at ``alpha``, the cost's own sigma0 as the unit). A network
+    with no redundancy tells nothing."""
+    if not (redundancy > 0 and np.isfinite(cost) and cost > 0.0):
+        return False
+    from scipy import stats  # as kinreg.estimate.snooping.chi2_quantile: only where a test is made
+
+    return bool((cost_against - cost) / (cost / redundancy) > stats.f.ppf(1.0 - alpha, 1, redundancy))
+
+
 # The drift's spreads and floors measured by variance components stay within these shares of the prior.
 _SPREAD_BOUNDS = (0.01, 100.0)
 

@@ -31,6 +31,7 @@ from kinreg.estimate.drift import (
     deskewed_planes,
     deskewed_points,
     estimate_drift_rates,
+    fits_better,
     plane_time_offsets,
     regime_coupling,
     rms_time_offset,
@@ -274,9 +275,9 @@ def adjust_with_measured_drift(
     if points_deskewed is not None:
         network = replace(network, velocity_cov=points_deskewed)
     result = _checked(adjust_network(network, prior_rates, config.block, progress))
-    coupling = (_coupling_by_fit(network, prior_rates, config.block, progress, result) if start_coupling is None
-                else start_coupling)
-    if coupling != prior_rates.coupling:
+    coupling = (_coupling_by_fit(network, prior_rates, config.block, progress, result, prior_rates.coupling)
+                if start_coupling is None else start_coupling)
+    if coupling is not None:
         log.info("the first network adjusted again with a coupling of %.2f (%s): the one %s", coupling,
                  replace(prior_rates, coupling=coupling).regime,
                  "it fits best" if start_coupling is None else "the last network fitted best")
@@ -344,9 +345,9 @@ def adjust_with_measured_drift(
     if used_planes is not planes and network.plane_nodes is not None:
         network, result, rates = _deskew_settled(network, planes, result, rates, prior_rates, config, progress,
                                                  trajectories)
-    fitted = _coupling_by_fit(network, rates, config.block, progress, result)
+    fitted = _coupling_by_fit(network, rates, config.block, progress, result, rates.coupling)
     disagrees = None
-    if abs(fitted - rates.coupling) > _COUPLING_DISAGREES:
+    if fitted is not None and abs(fitted - rates.coupling) > _COUPLING_DISAGREES:
         if start_coupling is None:
             log.warning("the adjusted network fits a coupling of %.2f (%s) better than the %.2f its rounds "
                         "settled on: adjusted again from %.2f", fitted, replace(rates, coupling=fitted).regime,
@@ -370,23 +371,35 @@ _COUPLING_DISAGREES = 0.25
 
 
 def _coupling_by_fit(network: Network, rates: DriftRates, config: BlockConfig, progress: Progress,
-                     result: BlockResult) -> float:
+                     result: BlockResult, against: float) -> float | None:
     """The coupling of the trajectory's attitude error into its steps that ``network`` fits best
-    with ``rates`` (:func:`~kinreg.estimate.drift.coupling_by_fit`): its least-squares cost with the
-    a-priori weights (no variance components, no data snooping) at :data:`_COUPLINGS_TRIED`, the
-    coupling an unknown of the adjustment in effect; a coupling that names a regime is that
-    regime's. For the first network it is not read off the first adjustment's attitudes
-    (:func:`~kinreg.estimate.drift.coupling_from_links`): that adjustment is made with the prior's
-    coupling, and where the prior is the wrong regime its attitudes are wrong where few planes fix
-    them, and lean the coupling read off them towards the prior (a GNSS/INS-like run of the sample
-    building, seed 3: 0.16 at a sigma of 0.03, from attitudes 93 mm off; the relinked rounds never
-    left it and ended 36 mm off, their global test passed)."""
+    with ``rates`` (:func:`~kinreg.estimate.drift.coupling_by_fit`; a coupling that names a regime
+    is that regime's), where it fits it significantly better than the coupling ``against``
+    (:func:`~kinreg.estimate.drift.fits_better`); else None. The fit is the least-squares cost with
+    the a-priori weights (no variance components, no data snooping) at :data:`_COUPLINGS_TRIED`:
+    the coupling an unknown of the adjustment in effect, tested as one. For the first network it
+    is not read off the first adjustment's attitudes (:func:`~kinreg.estimate.drift.coupling_from_links`):
+    that adjustment is made with the prior's coupling, and where the prior is the wrong regime its
+    attitudes are wrong where few planes fix them, and lean the coupling read off them towards the
+    prior (a GNSS/INS-like run of the sample building, seed 3: 0.16 at a sigma of 0.03, from
+    attitudes 93 mm off; the relinked rounds never left it and ended 36 mm off, their global test
+    passed)."""
     plain = replace(config, variance_components=False, data_snooping=False)
-    costs = []
-    for kappa in _COUPLINGS_TRIED:
-        fit = adjust_network(network, replace(rates, coupling=kappa), plain, progress, previous=result)
-        costs.append(fit.sigma0**2 * fit.redundancy if not fit.failed else np.inf)
-    return regime_coupling(coupling_by_fit(_COUPLINGS_TRIED, costs))
+    costs: dict[float, float] = {}
+    redundancy = 0.0
+
+    def cost(kappa: float) -> float:
+        nonlocal redundancy
+        if kappa not in costs:
+            fit = adjust_network(network, replace(rates, coupling=kappa), plain, progress, previous=result)
+            costs[kappa] = fit.sigma0**2 * fit.redundancy if not fit.failed else np.inf
+            redundancy = fit.redundancy
+        return costs[kappa]
+
+    best = regime_coupling(coupling_by_fit(_COUPLINGS_TRIED, [cost(k) for k in _COUPLINGS_TRIED]))
+    if best == against or not fits_better(cost(best), cost(against), redundancy, config.alpha):
+        return None
+    return best
 
 
 def _correlation_of_deskewed(network: Network, result: BlockResult, rates: DriftRates, prior: DriftRates,
