@@ -265,11 +265,12 @@ def adjust_with_measured_drift(
     and this (n, 6, 6) is the drift velocity's covariance that deskew left
     (:func:`~kinreg.estimate.drift.window_velocity_covariance`): their parameters are not deskewed again.
 
-    The coupling of the first adjustment is the one its network fits best (:func:`_coupling_by_fit`),
-    or ``start_coupling``; the last pass's network is asked the same, and where it fits a coupling
-    of another regime better than the one the rounds settled on (:data:`_COUPLING_DISAGREES`), the
-    rounds start again from that one, once; ``coupling_disagrees`` says that they settled apart
-    from it again."""
+    The first adjustment is made again with the coupling its network fits significantly better
+    than the prior's (:func:`_coupling_by_fit`; where none, the coupling is read off it as before),
+    or with ``start_coupling``; the last pass's network is asked the same, and where it fits a
+    coupling of another regime significantly better than the one the rounds settled on
+    (:data:`_COUPLING_DISAGREES`), the rounds start again from that one, once;
+    ``coupling_disagrees`` says that they settled apart from it again."""
     given = (network, planes, static, config, progress, executor, trajectories, points_deskewed)
     prior_rates = DriftRates.from_config(config.drift)
     if points_deskewed is not None:
@@ -364,7 +365,7 @@ def adjust_with_measured_drift(
 _COUPLINGS_TRIED = (0.0, 0.5, 1.0)
 # The adjusted network fits another coupling better than the one its rounds settled on where the
 # two lie further apart than this (the width of a regime, kinreg.estimate.drift.MIXED_COUPLING).
-# Healthy runs of the sample building agree (costs at the regime ends 50-60 times apart); a run that
+# Healthy runs of the sample building agree (costs at the regime ends 15-60 times apart); a run that
 # settled on 0.32 from a first coupling read off wrong attitudes fitted 0.83 (cost 642 at 1, 810 at
 # 0.32) and was 36 mm off.
 _COUPLING_DISAGREES = 0.25
