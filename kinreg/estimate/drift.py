@@ -13,7 +13,7 @@ import numpy as np
 
 from kinreg.config import DriftConfig
 from kinreg.estimate.correction import POINT_GRID_S, DriftCorrection
-from kinreg.estimate.snooping import axis_component_name
+from kinreg.estimate.snooping import axis_component_name, f_quantile
 from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, rotvec_to_quat, skew
 from kinreg.types import (
     BlockResult,
@@ -700,9 +700,7 @@ def fits_better(cost: float, cost_against: float, redundancy: float, alpha: floa
     with no redundancy tells nothing."""
     if not (redundancy > 0 and np.isfinite(cost) and cost > 0.0):
         return False
-    from scipy import stats  # as kinreg.estimate.snooping.chi2_quantile: only where a test is made
-
-    return bool((cost_against - cost) / (cost / redundancy) > stats.f.ppf(1.0 - alpha, 1, redundancy))
+    return bool((cost_against - cost) / (cost / redundancy) > f_quantile(1.0 - alpha, 1.0, float(redundancy)))
 
 
 # The drift's spreads and floors measured by variance components stay within these shares of the prior.

@@ -209,6 +209,15 @@ def chi2_quantile(p: float, dof: float) -> float:
     return float(stats.chi2.ppf(p, dof))
 
 
+@functools.lru_cache(maxsize=1024)
+def f_quantile(p: float, dof1: float, dof2: float) -> float:
+    """``scipy.stats.f.ppf(p, dof1, dof2)``, once per arguments; scipy.stats imported as in
+    :func:`chi2_quantile`."""
+    from scipy import stats
+
+    return float(stats.f.ppf(p, dof1, dof2))
+
+
 def trajectory_misfits(tests: Sequence[ObservationTest], alpha: float) -> list[ObservationTest]:
     """The trajectory's links that disagree with the adjusted network beyond what one of them may
     (chi-square at ``alpha`` over their number), the worst first. They are never rejected, so such
