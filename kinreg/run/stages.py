@@ -386,16 +386,18 @@ def _coupling_by_fit(network: Network, rates: DriftRates, config: BlockConfig, p
     attitudes 93 mm off; the relinked rounds never left it and ended 36 mm off, their global test
     passed)."""
     plain = replace(config, variance_components=False, data_snooping=False)
-    fits: dict[float, BlockResult] = {}
+    # Per coupling tried: the fit's cost and redundancy (not the fit: its tests and covariances
+    # are hundreds of MB at city scale).
+    fits: dict[float, tuple[float, float]] = {}
 
     def cost(kappa: float) -> float:
         if kappa not in fits:
-            fits[kappa] = adjust_network(network, replace(rates, coupling=kappa), plain, progress, previous=result)
-        fit = fits[kappa]
-        return fit.sigma0**2 * fit.redundancy if not fit.failed else np.inf
+            fit = adjust_network(network, replace(rates, coupling=kappa), plain, progress, previous=result)
+            fits[kappa] = (fit.sigma0**2 * fit.redundancy if not fit.failed else np.inf, fit.redundancy)
+        return fits[kappa][0]
 
     best = regime_coupling(coupling_by_fit(_COUPLINGS_TRIED, [cost(k) for k in _COUPLINGS_TRIED]))
-    redundancy = fits[_COUPLINGS_TRIED[0]].redundancy  # the same observations at every coupling
+    redundancy = fits[_COUPLINGS_TRIED[0]][1]  # the same observations at every coupling
     if best == against or not fits_better(cost(best), cost(against), redundancy, config.alpha):
         return None
     return best
