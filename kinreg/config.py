@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import logging
 import math
 import sys
 import types
@@ -19,13 +20,27 @@ from typing import Any, TypeVar
 
 from kinreg.errors import ConfigError
 
+log = logging.getLogger(__name__)
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
 
 # Bump when a key is renamed or removed (adding keys with defaults does not need a bump).
-CONFIG_SCHEMA_VERSION = 1
+# 2: [matching] max_jump_m and [block] drift_per_axis removed (_REMOVED).
+CONFIG_SCHEMA_VERSION = 2
+
+# Keys that earlier versions knew, with the value that left their feature off. A file that still
+# sets one to that value (a config.toml an earlier run wrote) asks for nothing that is gone: it
+# loads, with a warning. Any other value asked for a behaviour kinreg no longer has: refused, as
+# an unknown key is, but saying why.
+_REMOVED: dict[tuple[str, str], tuple[Any, str]] = {
+    ("matching", "max_jump_m"): (0.0, "the translation search of pairs across a trajectory jump was "
+                                      "an experiment that stayed off; jumps are found in the trajectory ([jumps])"),
+    ("block", "drift_per_axis"): (False, "the variance components of the drift per object axis were "
+                                         "an experiment that stayed off"),
+}
 
 
 class WindowMode(enum.Enum):
@@ -143,11 +158,6 @@ class MatchingConfig:
     coplanar_angle_deg: float = 1.0  # patches closer than this are one physical plane ...
     coplanar_offset_m: float = 0.02  # ... if also this close
     min_matches: int = 3  # a pair with fewer plane matches is not linked
-    # Experimental, off (0): a pair whose matches span fewer than three directions is searched for
-    # a translation of up to this much (a jump in the trajectory) and linked with a loose prior.
-    # It finds real jumps, but the block's data snooping does not yet reliably reject the jumped
-    # trajectory links afterwards (see benchmarks/RESULTS.md, robustness).
-    max_jump_m: float = dataclasses.field(default=0.0, metadata={"allow_zero": True})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,14 +199,6 @@ class BlockConfig:
     # (errors shared by all links of a scan and smooth drift do not show in residuals).
     variance_components: bool = True
     max_variance_rounds: int = 10
-    # Where the drift velocity is an unknown of the trajectory's links: a variance component per
-    # group of object axes of its change from one link to the next (horizontal, height, tilts,
-    # heading), and per position and rotation of the links' floor, up or down (their residuals
-    # show their whole error); the spreads and floors they measure are the next adjustment's
-    # (kinreg.estimate.drift.with_measured_spread). Off by default: more accurate over the
-    # simulated matrix, but the floor it lowers covered errors the model leaves (tilted head,
-    # GNSS/INS-like: x's errors 1.6 times its sigmas, pooled; RESULTS.md).
-    drift_per_axis: bool = False
     disconnected: Disconnected = Disconnected.STOP
     on_failure: OnFailure = OnFailure.STOP
     # Match the pairs again from the adjusted poses and adjust again, until the linked pairs no
@@ -393,8 +395,23 @@ def _coerce(value: Any, kind: Any, where: str) -> Any:
     return value
 
 
+def _without_removed(values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """``values`` without the keys of :data:`_REMOVED`: dropped with a warning where they hold the
+    value that was off; :class:`ConfigError` where they ask for the removed behaviour."""
+    kept = dict(values)
+    for (section, key), (off, why) in _REMOVED.items():
+        if section != where or key not in kept:
+            continue
+        value = kept.pop(key)
+        if isinstance(value, bool) is not isinstance(off, bool) or value != off:
+            raise ConfigError(f"[{where}] {key} was removed ({why}); delete the line")
+        log.warning("[%s] %s was removed (%s); the line can be deleted", where, key, why)
+    return kept
+
+
 def _build_section(cls: type[C], values: Mapping[str, Any], where: str) -> C:
     hints = _field_types(cls)
+    values = _without_removed(values, where)
     names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     unknown = sorted(set(values) - names)
     if unknown:

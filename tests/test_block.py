@@ -524,9 +524,7 @@ def test_an_adjustment_at_its_minimum_to_a_thousandth_of_a_sigma_has_converged(m
     monkeypatch.setattr(block, "_pose_residuals", approximate)
     monkeypatch.setattr(block, "_FIRST_DAMPING", 1e-4)  # and the damping as it started then
     poses, obs, held = _recorded_block("block_gnss_ins_tilted_crawl.npz")
-    # (without the drift's components per axis, whose rounds would move the result on from the round
-    # where the crawl ends)
-    config = BlockConfig(max_iterations=50, drift_per_axis=False)
+    config = BlockConfig(max_iterations=50)
     result = adjust_block(poses, obs, held, config)
     assert not result.failed and result.iterations < 10
     monkeypatch.setattr(block, "_DECREMENT", 0.0)  # without the model's own test: the crawl

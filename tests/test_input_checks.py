@@ -246,6 +246,23 @@ def test_config_non_finite_number_is_refused(tmp_path: Path, value: str) -> None
         load_config(path)
 
 
+@pytest.mark.parametrize(("section", "key", "off", "on"), [("matching", "max_jump_m", "0.0", "0.5"),
+                                                          ("block", "drift_per_axis", "false", "true")])
+def test_a_removed_key_is_refused_unless_it_is_off(tmp_path: Path, caplog: pytest.LogCaptureFixture, section: str,
+                                                   key: str, off: str, on: str) -> None:
+    """A config.toml an earlier run wrote still loads (the removed key held its off value, asking
+    for nothing that is gone), with a warning; a file asking for the removed behaviour is refused
+    with the reason, as an unknown key is."""
+    path = tmp_path / "k.toml"
+    path.write_text(f"schema_version = 1\n[{section}]\n{key} = {off}\n")
+    with caplog.at_level(logging.WARNING, logger="kinreg"):
+        assert load_config(path) == load_config()
+    assert any(f"[{section}] {key} was removed" in r.getMessage() for r in caplog.records)
+    path.write_text(f"[{section}]\n{key} = {on}\n")
+    with pytest.raises(ConfigError, match=rf"\[{section}\] {key} was removed \(.*\); delete the line"):
+        load_config(path)
+
+
 def test_reference_normal_that_overflows_is_normalised_not_nan() -> None:
     planes = parse_reference_planes(
         'plane_construction_accuracy_m = 0.05\n[[plane]]\nname = "a"\nnormal = [1e308, 1e308, 0]\nd_m = 1.0\n')

@@ -253,22 +253,6 @@ def test_exact_initial_transform_gives_the_reference_frame(slam_run):
     check_in_reference_frame(slam_run / "exact")
 
 
-def test_the_drift_measured_per_axis_keeps_the_reference_frame(slam_run):
-    """With the drift velocity and the trajectory's floor measured per axis, this short run's floor
-    falls and its adjusted attitudes sharpen: the planes then read a coupling of 0.87 at a sigma of
-    0.71 (a SLAM-like run), and its stations were 1.81 mm RMS off. Read only where it tells SLAM
-    from GNSS/INS, the coupling comes from the trajectory's steps, as without the components."""
-    text = f"\n[initial_transform]\nrotation_deg = {ROTATION_DEG}\ntranslation_m = {TRANSLATION_M}\n"
-    config = slam_run / "per_axis.toml"
-    config.write_text("[block]\ndrift_per_axis = true\n")
-    assert run_process(slam_run, "per_axis", write_reference(slam_run, "per_axis_ref.toml", text),
-                       "--config", str(config)) == 0
-    check_in_reference_frame(slam_run / "per_axis")
-    report = json.loads((slam_run / "per_axis" / "report.json").read_text())
-    assert report["adjustment"]["drift_rates"]["coupling"] < 0.5
-    assert any(k.startswith("drift ") for k in report["adjustment"]["variance_components"])  # the components ran
-
-
 def test_rough_initial_transform_as_matrix_is_enough(slam_run):
     """0.1-0.3 degrees (about the run's centre) and 5 cm off, pasted with 6 decimals: the
     adjustment finds the exact datum."""

@@ -18,10 +18,7 @@ per-observation test statistics and redundancy numbers from the 6x6 blocks of th
 (selected inversion: the inverse is never formed densely), data snooping of the links and station
 observations (the worst observation above the critical value is removed and the network
 re-adjusted; the trajectory's links are tested but never removed), and optionally a variance
-component per observation kind so that reported standard deviations follow the residuals; where
-the drift velocity is an unknown, one per group of object axes of its change (horizontal, height,
-tilts, heading) and per position and rotation of the trajectory links' floor
-(:func:`~kinreg.estimate.snooping.axis_components`).
+component per observation kind so that reported standard deviations follow the residuals.
 """
 
 from __future__ import annotations
@@ -40,8 +37,6 @@ from kinreg.errors import EstimationError
 from kinreg.estimate.normal import NormalEquations
 from kinreg.estimate.snooping import (
     ObservationTests,
-    axis_component_name,
-    axis_components,
     chi2_quantile,
     observation_tests,
     taken_back,
@@ -161,62 +156,19 @@ def _optional(values: list, shape: tuple[int, ...]) -> FloatArray:
     return out
 
 
-def _subset(a: _Active, active: np.ndarray, weights: dict[str, float],
-            axes: dict[str, FloatArray] | None = None) -> _Active:
-    """The active observations of :func:`_gather`'s arrays, ``P`` weighted per kind, and those of
-    the kinds in ``axes`` per axis (6,)."""
+def _subset(a: _Active, active: np.ndarray, weights: dict[str, float]) -> _Active:
+    """The active observations of :func:`_gather`'s arrays, ``P`` weighted per kind."""
     sel = np.flatnonzero(active)
     parts = {f.name: getattr(a, f.name)[sel] for f in dataclasses.fields(a)}
     parts["P"] = parts["P"] * _weight_of(parts["kinds"], weights)[:, None, None]
-    for kind, per_axis in (axes or {}).items():
-        root = np.sqrt(per_axis)
-        parts["P"][parts["kinds"] == kind] *= root[:, None] * root[None, :]
     return _Active(**parts)
 
 
-def _eigen_of(a: _Active, eigen: tuple[FloatArray, FloatArray], weights: dict[str, float],
-              axes: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+def _eigen_of(a: _Active, eigen: tuple[FloatArray, FloatArray],
+              weights: dict[str, float]) -> tuple[FloatArray, FloatArray]:
     """The eigenvalues and vectors of the active observations' weights ``a.P``: the information's
-    own (``eigen``, of all observations) scaled per kind, and those weighted per axis (whose
-    vectors may change) decomposed again."""
-    w, V = eigen[0][a.idx] * _weight_of(a.kinds, weights)[:, None], eigen[1][a.idx]
-    for kind, per_axis in axes.items():
-        rows = np.flatnonzero(a.kinds == kind)
-        if len(rows) and not np.all(per_axis == 1.0):
-            w[rows], V[rows] = np.linalg.eigh(a.P[rows])
-    return w, V
-
-
-# The trajectory links' floor may fall to a hundredth of its a-priori sigma where their residuals
-# say so (a simulated drift has none; a real trajectory's own noise shows in them and holds it up):
-# a floor of zero would make them conditions, and the normal matrix ill-conditioned.
-_FLOOR_GAIN = 1e4
-
-
-# The drift velocity's change in groups of object axes: the horizontal shift, the height, the tilts
-# and the heading. The object frame's horizontal axes are a survey convention (east, north, or the
-# building's grid), which no drift process knows of; gravity sets the others apart (a GNSS/INS
-# platform's height, an IMU's levelled tilts against its heading). One component per horizontal
-# axis measured the axis along which few planes fixed the stations at a quarter of the other's
-# step (tilted head, GNSS/INS-like seed 1: x 0.020 mm/s a link against a true 0.069, y 0.090
-# against 0.058), and held x's velocity where it was, 3-5 sigma off.
-_DRIFT_GROUPS: tuple[tuple[int, ...], ...] = ((0, 1), (2,), (3, 4), (5,))
-
-
-def _per_axis_kinds(everything: _Active, config: BlockConfig) -> dict[str, tuple[tuple[int, ...], ...]]:
-    """The kinds whose variance components are estimated per group of axes
-    (:func:`~kinreg.estimate.snooping.axis_components`), with their groups: where the drift velocity
-    is an unknown of the trajectory's links, its change per group of object axes
-    (:data:`_DRIFT_GROUPS`), and the links' floor per position and rotation (where their weights do
-    not couple the two)."""
-    drift, trajectory = ObservationKind.DRIFT.value, ObservationKind.TRAJECTORY.value
-    if not (config.variance_components and config.drift_per_axis) or not (everything.kinds == drift).any():
-        return {}
-    out: dict[str, tuple[tuple[int, ...], ...]] = {drift: _DRIFT_GROUPS}
-    P = everything.P[everything.kinds == trajectory]
-    if len(P) and np.all(np.abs(P[:, :3, 3:]) <= 1e-9 * np.abs(P).max()):
-        out[trajectory] = ((0, 1, 2), (3, 4, 5))
-    return out
+    own (``eigen``, of all observations) scaled per kind."""
+    return eigen[0][a.idx] * _weight_of(a.kinds, weights)[:, None], eigen[1][a.idx]
 
 
 def _weight_of(kinds: np.ndarray, weights: dict[str, float]) -> FloatArray:
@@ -514,14 +466,6 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
     start = (_moved_poses(poses_initial, -origin), np.zeros((int(np.count_nonzero(vnode >= 0)), 6)))
     everything = _gather(observations, vnode, links)
     kinds = everything.kinds
-    # The drift velocity's change per group of object axes (_DRIFT_GROUPS): a variance component
-    # each (kinreg.estimate.snooping.axis_components). A drift that walks at random moves its
-    # velocity alike on every axis, whatever level each axis has wandered to; a model whose change
-    # follows each axis's level held a slow axis's velocity where it was, 3 sigma off. And the
-    # trajectory links' floor (position, rotation), which otherwise hides that change.
-    groups = _per_axis_kinds(everything, config)
-    axes = {kind: _loosest(everything, kind) if kind == ObservationKind.DRIFT.value else np.ones(6) for kind in groups}
-    estimated = {kind: axes[kind] != 1.0 for kind in groups}  # reported: started elsewhere or estimated
     free_index = _free_index(fixed, len(start[1]))
     # One pattern (that of all observations) and one symbolic factorisation for every iteration
     # and every round of the adjustment.
@@ -533,12 +477,12 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
         try:
             if last_round:
                 _check_datum(links.subset(active), fixed, n)
-            a = _subset(everything, active, weights, axes)
+            a = _subset(everything, active, weights)
             state, iterations, factor, converged, linearised = _levenberg_marquardt(start, a, fixed, free_index,
                                                                                     normal, config, progress)
-            eig = _eigen_of(a, eigen, weights, axes)
+            eig = _eigen_of(a, eigen, weights)
             tests, omega, redundancy, Qxx_blocks = _test_observations(state, a, links, fixed, free_index, factor,
-                                                                      linearised, eig, per_axis=bool(groups))
+                                                                      linearised, eig)
             del linearised
         except EstimationError:
             if not last_round:
@@ -563,16 +507,8 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
             break
         if config.variance_components and vce_rounds < config.max_variance_rounds:
             new_weights = variance_components(tests, weights, config.alpha, _LOWERABLE)
-            tested_P = a.P[np.searchsorted(a.idx, tests.index)]
-            new_axes = {}
-            for kind, g in groups.items():
-                gain = _FLOOR_GAIN if kind == ObservationKind.TRAJECTORY.value else None
-                new_axes[kind], now = axis_components(tests, tested_P, axes[kind], kind, g, gain)
-                estimated[kind] |= now
-                new_weights[kind] = weights[kind]  # theirs per axis only
-            changed = (any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
-                       or any(bool(np.any(np.abs(new_axes[k] / axes[k] - 1.0) > 0.02)) for k in axes))
-            weights, axes = new_weights, new_axes
+            changed = any(abs(new_weights[k] / weights[k] - 1.0) > 0.02 for k in weights)
+            weights = new_weights
             vce_rounds += 1
             if changed:
                 start = state
@@ -625,31 +561,9 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
         variance_factor=factor_scale,
         iterations=iterations,
         tests=tuple(_with_rejected(tests, rejected_order, links).as_tests()),
-        variance_components={**{k: 1.0 / w for k, w in weights.items() if (kinds == k).any() and k not in axes},
-                             **_axis_components(axes, estimated)},
+        variance_components={k: 1.0 / w for k, w in weights.items() if (kinds == k).any()},
         failure=failure,
     )
-
-
-def _loosest(everything: _Active, kind: str) -> FloatArray:
-    """Weights per axis (6,) that start each position axis of ``kind``'s observations at the
-    loosest of the three (the largest variance) and each rotation axis likewise. A variance
-    component estimated from a model far too tight has almost no redundancy to go on (the model
-    leaves the residuals no room): the drift velocity's change on an axis whose velocity happened
-    to stay low would never be found."""
-    rows = (everything.kinds == kind) & (everything.nodes[:, 1] >= 0)
-    start = np.ones(6)
-    if rows.any():
-        p = np.median(np.diagonal(everything.P[rows], axis1=1, axis2=2), axis=0)
-        for g in (slice(0, 3), slice(3, 6)):
-            start[g] = p[g].min() / p[g]
-    return start
-
-
-def _axis_components(axes: dict[str, FloatArray], estimated: dict[str, np.ndarray]) -> dict[str, float]:
-    """The variance components per axis (:func:`_per_axis_kinds`) that were estimated, by name."""
-    return {axis_component_name(kind, i): float(1.0 / per_axis[i])
-            for kind, per_axis in axes.items() for i in range(6) if estimated[kind][i]}
 
 
 def _failure(converged: bool, iterations: int, poses: Pose, omega: float, redundancy: float,
@@ -832,19 +746,18 @@ def _levenberg_marquardt(start, a, fixed, free_index, normal, config, progress):
     return (poses, velocity), iterations, factor, converged, (e, J)
 
 
-def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None, per_axis=False):
+def _test_observations(state, a, links, fixed, free_index, factor, linearised=None, eig=None):
     """The observations' tests (:func:`~kinreg.estimate.snooping.observation_tests`) at ``state``,
     the total e^T P e and redundancy, and the stations' covariance blocks. ``linearised``: ``(e, J)``
     at ``state`` if at hand; ``eig``: the eigenvalues and vectors of ``a.P`` if at hand."""
     e, J = _linearise(*state, a) if linearised is None else linearised
-    figures, diag = observation_tests(e, J, a.P, _columns(a, free_index), factor, eig, per_axis)
-    statistic, dof, r_k, normalised, vtpv, least, cov_adjusted, r_axes = figures
+    figures, diag = observation_tests(e, J, a.P, _columns(a, free_index), factor, eig)
+    statistic, dof, r_k, normalised, vtpv, least, cov_adjusted = figures
     keep = dof > 0
     index = a.idx[keep]
     tests = ObservationTests(index, a.kinds[keep], links.i[index], links.j[index], statistic[keep], dof[keep],
                              r_k[keep], normalised[keep], np.zeros(len(index), dtype=bool), vtpv[keep],
-                             least[keep], cov_adjusted[keep], e[keep],  # a copy: e may be written into later
-                             None if r_axes is None else r_axes[keep])
+                             least[keep], cov_adjusted[keep], e[keep])  # a copy: e may be written into later
     n_stations = int(np.count_nonzero(~fixed))
     return tests, float(vtpv[keep].sum()), float(r_k[keep].sum()), diag[:n_stations]
 

@@ -5,7 +5,7 @@ what that does to the pairwise priors, the block's trajectory links, the planes 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -13,7 +13,7 @@ import numpy as np
 
 from kinreg.config import DriftConfig
 from kinreg.estimate.correction import POINT_GRID_S, DriftCorrection
-from kinreg.estimate.snooping import axis_component_name, f_quantile
+from kinreg.estimate.snooping import f_quantile
 from kinreg.geometry import FloatArray, Pose, quat_to_rotvec, rotvec_to_quat, skew
 from kinreg.types import (
     BlockResult,
@@ -701,40 +701,6 @@ def fits_better(cost: float, cost_against: float, redundancy: float, alpha: floa
     if not (redundancy > 0 and np.isfinite(cost) and cost > 0.0):
         return False
     return bool((cost_against - cost) / (cost / redundancy) > f_quantile(1.0 - alpha, 1.0, float(redundancy)))
-
-
-# The drift's spreads and floors measured by variance components stay within these shares of the prior.
-_SPREAD_BOUNDS = (0.01, 100.0)
-
-
-def with_measured_spread(rates: DriftRates, used: DriftRates, components: Mapping[str, float],
-                         prior: DriftRates) -> DriftRates:
-    """``rates`` with the drift velocity's spread per axis and the trajectory's floors that an
-    adjustment made with ``used`` measured (its variance components per axis,
-    :func:`~kinreg.estimate.snooping.axis_components`): ``used``'s times the root of each estimated
-    component, within :data:`_SPREAD_BOUNDS` of the ``prior``. Axes without one keep ``rates``'.
-
-    The block's drift velocity (:func:`drift_observation`) changes from one link to the next as
-    its model says; the variance component of that change, per object axis, measures the process
-    where planes fix the axis, from its changes rather than from the level the velocity happened
-    to wander to (:func:`estimate_drift_rates`), and where the trajectory's floor no longer hides
-    it. The same spread then sets the drift inside each window (its bias and the planes'
-    deformation), so that one velocity model serves all."""
-    def scaled(kind: str, axis: int, value: float, given: float, lo: float, hi: float) -> float:
-        c = components.get(axis_component_name(kind, axis))
-        return value if c is None else float(np.clip(given * np.sqrt(c), lo, hi))
-
-    drift, trajectory = ObservationKind.DRIFT.value, ObservationKind.TRAJECTORY.value
-    lo, hi = _SPREAD_BOUNDS
-    pos = [scaled(drift, i, rates.pos_m_per_s[i], used.pos_m_per_s[i], lo * prior.pos_m_per_s[i],
-                  hi * prior.pos_m_per_s[i]) for i in range(3)]
-    rot = [scaled(drift, 3 + i, rates.rot_rad_per_s[i], used.rot_rad_per_s[i], lo * prior.rot_rad_per_s[i],
-                  hi * prior.rot_rad_per_s[i]) for i in range(3)]
-    return replace(rates, pos_m_per_s=np.array(pos), rot_rad_per_s=np.array(rot),
-                   pos_floor_m=scaled(trajectory, 0, rates.pos_floor_m, used.pos_floor_m, lo * prior.pos_floor_m,
-                                      prior.pos_floor_m * hi),
-                   rot_floor_rad=scaled(trajectory, 3, rates.rot_floor_rad, used.rot_floor_rad,
-                                        lo * prior.rot_floor_rad, prior.rot_floor_rad * hi))
 
 
 # Fewer plane links of consecutive-enough stations than this leave the coupling to the adjusted steps.

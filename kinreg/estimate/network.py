@@ -9,7 +9,6 @@ their planes alone, like loop closures.
 from __future__ import annotations
 
 import itertools
-import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -20,13 +19,7 @@ from scipy.spatial import cKDTree
 from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
-from kinreg.estimate.matching import (
-    StationPlanes,
-    candidate_pairs,
-    coarse_translation,
-    count_directions,
-    match_planes,
-)
+from kinreg.estimate.matching import StationPlanes, candidate_pairs, match_planes
 from kinreg.estimate.pairwise import PairInput, adjust_pairs
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
@@ -36,14 +29,11 @@ from kinreg.types import (
     LinkStatus,
     ObservationKind,
     Plane,
-    PlaneMatch,
     RelativeObservation,
     ScanKind,
     Station,
     Tie,
 )
-
-log = logging.getLogger(__name__)
 
 
 def station_pairs(stations: Sequence[Station], matching: MatchingConfig,
@@ -107,20 +97,6 @@ def _pair_input(
     T_prior = si.T_obj_scan.inverse().compose(sj.T_obj_scan)
     matches = match_planes(match_i, match_j, T_prior, matching)
     sigma = sigma_prior
-    if matching.max_jump_m > 0 and _directions(matches, planes_i) < 3:
-        # Robust step: the trajectory may have jumped between the two scans, so that the planes
-        # across the jump no longer match (those along it still may).
-        tau = coarse_translation(planes_i, planes_j, T_prior, matching)
-        if tau is not None and np.linalg.norm(tau) > matching.max_offset_m:
-            shifted = Pose(np.array([1.0, 0, 0, 0]), tau).compose(T_prior)
-            realigned = match_planes(match_i, match_j, shifted, matching)
-            if (len(realigned) >= matching.min_matches
-                    and _directions(realigned, planes_i) > _directions(matches, planes_i)):
-                log.info("pair %s-%s: trajectory off by %.3f m; linked after a translation search",
-                         si.name, sj.name, float(np.linalg.norm(tau)))
-                matches, T_prior = realigned, shifted
-                loose = float(np.linalg.norm(tau)) + matching.max_offset_m
-                sigma = pose_sigmas(loose, np.radians(1.0))
     if len(matches) < matching.min_matches:
         return None
     if static is not None and ScanKind.STATIC in (si.kind, sj.kind):
@@ -128,12 +104,6 @@ def _pair_input(
     elif si.run != sj.run:
         sigma = pose_sigmas(pairwise.cross_run_prior_sigma_m, np.radians(pairwise.cross_run_prior_sigma_deg))
     return PairInput(i, j, planes_i, planes_j, T_prior, _dt(si, sj), matches, sigma)
-
-
-def _directions(matches: tuple[PlaneMatch, ...], planes_i: tuple[Plane, ...]) -> int:
-    """Distinct normal directions among the matched planes of scan i."""
-    by_id = {p.plane_id: p for p in planes_i}
-    return count_directions(np.array([by_id[m.plane_i].normal for m in matches]).reshape(-1, 3))
 
 
 def _dt(a: Station, b: Station) -> float:

@@ -33,8 +33,6 @@ class ObservationTests:
     min_redundancy: np.ndarray
     cov_adjusted: np.ndarray | None = None
     residual: np.ndarray | None = None  # (k, 6)
-    # (k, 6) the diagonal of each observation's redundancy matrix I - P J Qxx J^T (its axes' shares)
-    redundancy_axes: np.ndarray | None = None
 
     @classmethod
     def from_tests(cls, tests: Sequence[ObservationTest]) -> ObservationTests:
@@ -91,18 +89,16 @@ _CHUNK = 1 << 14
 
 
 def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndarray, factor: SparseFactor,
-                      eig: tuple[FloatArray, FloatArray] | None = None,
-                      per_axis: bool = False) -> tuple[tuple[np.ndarray | None, ...], FloatArray]:
+                      eig: tuple[FloatArray, FloatArray] | None = None) -> tuple[tuple[np.ndarray, ...], FloatArray]:
     """Per-observation statistics from the cofactor of the residuals, Q_ee = P^+ - J Qxx J^T,
     vectorised over observations (each restricted to the directions its information determines).
 
     ``e`` (k, 6) residuals, ``J`` (k, slots, 6, 6) their Jacobians, ``P`` (k, 6, 6) weights,
     ``cols`` (k, slots) the unknown blocks of the slots (-1: none), ``factor`` of the normal matrix
     (block ordered), ``eig`` the eigenvalues and vectors of ``P`` if at hand. Returns
-    ``(statistic, dof, redundancy, normalised, vtpv, min_redundancy, cov_adjusted, redundancy_axes)``
-    (k,) each (``cov_adjusted`` (k, 6, 6): of the relative pose from the first two slots;
-    ``redundancy_axes`` (k, 6): the diagonal of the redundancy matrix, only ``per_axis``, else
-    None) and the diagonal blocks of Qxx.
+    ``(statistic, dof, redundancy, normalised, vtpv, min_redundancy, cov_adjusted)``
+    (k,) each (``cov_adjusted`` (k, 6, 6): of the relative pose from the first two slots) and the
+    diagonal blocks of Qxx.
     """
     slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
     both = [(cols[:, s] >= 0) & (cols[:, t] >= 0) for s, t in slot_pairs]
@@ -121,26 +117,21 @@ def observation_tests(e: FloatArray, J: FloatArray, P: FloatArray, cols: np.ndar
     statistic, r_k, normalised, vtpv, least = (np.empty(k) for _ in range(5))
     dof = np.empty(k, dtype=np.int64)
     cov_adjusted = np.empty((k, 6, 6))
-    r_axes = np.empty((k, 6)) if per_axis else None
 
     def step(start: int) -> None:
         c = slice(start, min(start + _CHUNK, k))
         w, V = np.linalg.eigh(0.5 * (P[c] + np.transpose(P[c], (0, 2, 1)))) if eig is None else (eig[0][c], eig[1][c])
-        figures = _figures(e[c], J[c], cols[c], slots, [at[c] for at in off_at], diag, off, w, V, per_axis)
-        (statistic[c], dof[c], r_k[c], normalised[c], vtpv[c], least[c], cov_adjusted[c]), axes_c = figures
-        if r_axes is not None:
-            r_axes[c] = axes_c
+        figures = _figures(e[c], J[c], cols[c], slots, [at[c] for at in off_at], diag, off, w, V)
+        statistic[c], dof[c], r_k[c], normalised[c], vtpv[c], least[c], cov_adjusted[c] = figures
 
     in_threads(step, range(0, k, _CHUNK), len(diag))
-    return (statistic, dof, r_k, normalised, vtpv, least, cov_adjusted, r_axes), diag
+    return (statistic, dof, r_k, normalised, vtpv, least, cov_adjusted), diag
 
 
 def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], off_at: list[np.ndarray],
-             diag: FloatArray, off: FloatArray, w: FloatArray, V: FloatArray,
-             per_axis: bool = False) -> tuple[tuple[np.ndarray, ...], np.ndarray | None]:
+             diag: FloatArray, off: FloatArray, w: FloatArray, V: FloatArray) -> tuple[np.ndarray, ...]:
     """:func:`observation_tests`' figures of some observations (``off_at``: per slot pair their blocks
-    in ``off``, -1: none; ``w``, ``V``: the eigenvalues and vectors of their weights), and with
-    ``per_axis`` the diagonal of their redundancy matrices (else None)."""
+    in ``off``, -1: none; ``w``, ``V``: the eigenvalues and vectors of their weights)."""
     slot_pairs = [(s, t) for s in range(3) for t in range(s + 1, 3)]
     # Over all observations with contiguous operands (zero blocks where a slot is not free): numpy's
     # small-matrix products are several times faster so than on gathered or transposed views.
@@ -166,12 +157,6 @@ def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], o
             cov_adjusted = JQJ.copy()  # of the adjusted relative pose (without the drift's share)
     del J_s, J_sT
     determined = w > 1e-9 * np.maximum(w[:, -1:], 1e-300)
-    r_axes = None
-    if per_axis:  # the redundancy matrix's diagonal, I - P J Qxx J^T (P restricted to its determined directions)
-        P_det = (V * np.where(determined, w, 0.0)[:, None, :]) @ np.transpose(V, (0, 2, 1))
-        r_axes = np.where(np.diagonal(P_det, axis1=1, axis2=2) > 0.0,
-                          1.0 - np.einsum("kij,kji->ki", P_det, JQJ), 0.0)
-        del P_det
     w = np.where(determined, w, 1.0)
     z = np.where(determined, np.einsum("kai,ka->ki", V, e), 0.0)
     VJV = np.transpose(V, (0, 2, 1)) @ JQJ @ V
@@ -196,7 +181,7 @@ def _figures(e: FloatArray, J: FloatArray, cols: np.ndarray, slots: list[int], o
     statistic = np.where((r_k > 1e-6) & (statistic > -1e-9), np.maximum(statistic, 0.0), np.nan)
     # A negative statistic (an indefinite Q_zz, far from the solution) has no normalised value.
     normalised = np.sqrt(np.where(statistic >= 0, statistic, np.nan) / np.maximum(dof, 1))
-    return (statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted), r_axes
+    return statistic, dof, r_k, normalised, vtpv, r_dir[:, 0], cov_adjusted
 
 
 @functools.lru_cache(maxsize=1024)
@@ -326,49 +311,6 @@ def models_rejected(tests: Sequence[ObservationTest], components: dict[str, floa
         if factor > chi2_quantile(1.0 - alpha, r) / r:
             out[kind] = factor
     return out
-
-
-# How the variance components per axis are named in a result (BlockResult.variance_components):
-# the drift velocity's change per object axis (the axes of one group share theirs), the trajectory
-# links' floor per position and rotation.
-_AXIS_NAMES = ("x", "y", "z", "turn x", "turn y", "turn z")
-
-
-def axis_component_name(kind: str, axis: int) -> str:
-    """The name of the variance component of ``kind``'s ``axis`` (0-5) in a block result."""
-    if kind == ObservationKind.TRAJECTORY.value:
-        return f"{kind} {'position' if axis < 3 else 'rotation'}"
-    return f"{kind} {_AXIS_NAMES[axis]}"
-
-
-def axis_components(tests: ObservationTests, P: FloatArray, axes: FloatArray, kind: str,
-                    groups: Sequence[Sequence[int]] = ((0,), (1,), (2,), (3,), (4,), (5,)),
-                    gain: float | None = None) -> tuple[FloatArray, np.ndarray]:
-    """Förstner's estimate per group of axes of the observations of ``kind``, whose weights ``P``
-    (k, 6, 6: the tests' own, under the current ``axes`` weights) do not couple the groups: per group
-    the weighted squares ``e_g^T P_gg e_g`` over the group's redundancy (the trace of its block of
-    I - P J Qxx J^T), taken both ways, to at most :data:`MAX_WEIGHT_GAIN` times the a-priori weight
-    (or its inverse). Such kinds: the drift velocity's change from one link to the next
-    (``DRIFT``, per group of object axes), whose residual is the change itself, and the
-    trajectory's links once the drift velocity is an unknown of theirs (``TRAJECTORY``, position
-    and rotation), whose residual is then their floor alone. Groups with a redundancy under 5 keep
-    their weight: where no plane fixes an axis the residual follows the model and says nothing of
-    it. ``gain``: the bound of the weight's rise, if not :data:`MAX_WEIGHT_GAIN`. Returns the new
-    axes' weights (6,) and which were estimated."""
-    group = (tests.kind == kind) & ~tests.rejected & (tests.j >= 0)
-    out = np.asarray(axes, dtype=float).copy()
-    estimated = np.zeros(6, dtype=bool)
-    if not group.any() or tests.residual is None or tests.redundancy_axes is None:
-        return out, estimated
-    e, P_k, r_axes = tests.residual[group], P[group], tests.redundancy_axes[group]
-    for g in groups:
-        at = list(g)
-        r_g = float(r_axes[:, at].sum())
-        omega_g = float(np.einsum("ki,kij,kj->", e[:, at], P_k[:, at][:, :, at], e[:, at]))
-        if r_g >= 5:
-            out[at] = np.clip(out[at] * r_g / max(omega_g, 1e-12 * r_g), 1.0 / MAX_WEIGHT_GAIN, gain or MAX_WEIGHT_GAIN)
-            estimated[at] = True
-    return out, estimated
 
 
 def variance_components(tests: ObservationTests | Sequence[ObservationTest], weights: dict[str, float],

@@ -36,7 +36,6 @@ from kinreg.estimate.drift import (
     regime_coupling,
     rms_time_offset,
     window_velocity_covariance,
-    with_measured_spread,
     with_window_bias,
     with_window_deformation,
 )
@@ -327,7 +326,6 @@ def adjust_with_measured_drift(
         rates = replace(estimate_drift_rates(network.stations, result, prior_rates, config.drift.measured_rate_floor,
                                              measure_correlation=False, links=network.links),
                         correlation_s=correlation)
-        rates = with_measured_spread(rates, used, result.variance_components, prior_rates)
         tried.append((used.coupling, rates.coupling))
         rates = replace(rates, coupling=_settled_coupling(tried))
         settled = abs(rates.coupling - used.coupling) < _COUPLING_TOLERANCE
@@ -446,7 +444,6 @@ def _deskew_settled(network: Network, planes: Sequence[tuple[Plane, ...]], resul
         if moved <= _DESKEW_SETTLED:
             break
         log.info("planes deskewed again with the last adjustment (moved by up to %.2f sigma)", moved)
-        rates = with_measured_spread(rates, rates, result.variance_components, prior)
         network = replace(network, planes=tuple(deskewed),
                           velocity_cov=window_velocity_covariance(network.stations, result, rates))
         result = _checked(adjust_network(network, rates, config.block, progress, previous=result))
