@@ -9,8 +9,8 @@ The API a script uses::
     summary = kinreg.process(inputs, "out/run", config)        # raises kinreg.KinregError on bad input
     print(summary.position_sigma_rms_mm, summary.global_test_passed)
 
-The names below are loaded on first use (the pipeline pulls in scipy and open3d; a script that
-only reads a trajectory should not pay for them). Layers and modules: ``ARCHITECTURE.md``.
+The names below are loaded on first use (the pipeline pulls in scipy; a script that only reads a
+trajectory should not pay for it). Layers and modules: ``ARCHITECTURE.md``.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Every scan (static or quasi-static) is searched for planar patches in its own frame:
 
-1. **Downsample** the finite points on a voxel grid (``voxel_m``, open3d) so that the search
+1. **Downsample** the finite points on a voxel grid (``voxel_m``) so that the search
    sees every surface with about the same weight, whatever its range.
 2. **RANSAC** on the downsampled copy, one plane per round, inliers removed after each round.
    Hypotheses are the planes of small cells (``ransac_cell_m``), each found by a small
@@ -14,8 +14,8 @@ Every scan (static or quasi-static) is searched for planar patches in its own fr
    counts only if enough of its inliers lie in well-filled cells of a grid in the plane: a
    surface fills its cells, stray points that line up by chance do not. The search stops at
    ``max_planes`` planes or after a few rejected winners in a row.
-   open3d's ``segment_plane`` is not used: it needed 0.2-0.7 s per plane on 50-130 k downsampled
-   points here, i.e. 5-15 s for a scan of 20 planes, against a budget of about 1 s per scan.
+   A RANSAC of planes through three points scored on every point (open3d's ``segment_plane``)
+   is not used: it takes seconds per scan of twenty planes, against a budget of about 1 s.
 3. **Assign** every full-resolution point to the nearest plane within ``refit_distance_m``;
    refit every plane by least squares and re-select its points around the refitted plane (a
    band around a slightly tilted plane would cut one side's noise tail). A point within the band
@@ -426,10 +426,9 @@ def _voxel_downsample(rows: FloatArray, voxel_m: float) -> FloatArray:
     """Centroids (M, 3) of the occupied voxels of the points ``rows`` (3, N), sorted
     lexicographically.
 
-    The voxels and sums of open3d's ``voxel_down_sample`` (grid from the points' lower bound
-    minus half a voxel; each centroid the sum of its points in their order over their count),
-    so the same values to the bit, without open3d's import (a second per worker process) or its
-    copy of the points.
+    The grid starts at the points' lower bound minus half a voxel, and each centroid is the sum
+    of its points in their order over their count (as open3d's ``voxel_down_sample`` forms them),
+    so that the same points give the same centroids to the bit.
     """
     lower = rows.min(axis=1) - voxel_m * 0.5
     # Non-negative: truncation is the floor. Subtraction and division are monotonic, so the

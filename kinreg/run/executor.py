@@ -13,7 +13,7 @@ Dask distributed cluster. Only :mod:`concurrent.futures` executors; no scheduler
   imported only then (the optional extra ``kinreg[dask]``).
 
 One thread per local worker: N workers already keep N cores busy, so each worker limits BLAS
-(OpenBLAS, MKL, BLIS), OpenMP (open3d) and numexpr to one thread (:data:`THREAD_VARIABLES`);
+(OpenBLAS, MKL, BLIS), OpenMP and numexpr to one thread (:data:`THREAD_VARIABLES`);
 otherwise every worker would start a pool per core and they would fight over the cores. The
 variables must be set before a worker loads those libraries, so they are set in the forkserver
 itself (its first preloaded module is :mod:`kinreg.run._worker_threads`, before the tasks' module
