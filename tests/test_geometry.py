@@ -56,6 +56,8 @@ def test_compose_inverse_and_apply():
     np.testing.assert_allclose(a.apply_inverse(a.apply(p)), p, atol=1e-10)
     np.testing.assert_allclose(a.as_matrix() @ a.inverse().as_matrix(), np.broadcast_to(np.eye(4), (50, 4, 4)),
                                atol=1e-12)
+    back = Pose.from_matrix(a.as_matrix())
+    np.testing.assert_allclose(back.as_matrix(), a.as_matrix(), atol=1e-12)
 
 
 def test_single_pose_maps_many_points_and_keeps_utm_precision():

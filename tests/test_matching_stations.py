@@ -10,7 +10,7 @@ from planefixtures import ROOM, pose, scan_planes
 
 from kinreg.config import MatchingConfig
 from kinreg.estimate import matching
-from kinreg.estimate.matching import StationPlanes, match_planes, transform_planes
+from kinreg.estimate.matching import StationPlanes, match_planes
 from kinreg.geometry import Pose, rotvec_to_quat, tangent_basis
 from kinreg.types import Plane, PlaneMatch
 
@@ -42,7 +42,9 @@ def _reference_match(planes_i, planes_j, T_i_j, config) -> tuple[tuple[PlaneMatc
     n_a = np.array([p.normal for p in planes_i])
     d_a = np.array([p.d_m for p in planes_i])
     c_a = np.array([p.centroid_xyz for p in planes_i])
-    n_b, d_b = transform_planes(np.array([p.normal for p in planes_j]), np.array([p.d_m for p in planes_j]), T_i_j)
+    # planes of frame j in frame i: from n_j . x_j = d_j and x_i = R x_j + t, (R n_j) . x_i = d_j + (R n_j) . t
+    n_b = np.array([p.normal for p in planes_j]) @ T_i_j.rotation_matrix.T
+    d_b = np.array([p.d_m for p in planes_j]) + n_b @ T_i_j.t_xyz
     c_b = T_i_j.apply(np.array([p.centroid_xyz for p in planes_j]))
     cos = np.clip(n_a @ n_b.T, -1.0, 1.0)
     angle = np.degrees(np.arccos(cos))

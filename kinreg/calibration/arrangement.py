@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 
 from kinreg.errors import ConfigError
 from kinreg.geometry import FloatArray
-from kinreg.io.reference_planes import PlaneExtent, ReferencePlane, ReferencePlanes
+from kinreg.io.reference_planes import PlaneExtent, ReferencePlane
 
 logger = logging.getLogger(__name__)
 
@@ -108,17 +108,6 @@ class PlanePatch:
         poly = np.array([[-hu, -hv], [hu, -hv], [hu, hv], [-hu, hv]])
         extent = PlaneExtent(self.center_m.copy(), self.axis_u.copy(), self.axis_v.copy(), poly)
         return ReferencePlane(self.name, self.normal.copy(), self.d_m, extent)
-
-    def transformed(self, R: FloatArray, t: FloatArray) -> PlanePatch:
-        """The patch mapped by ``x' = R x + t``."""
-        return PlanePatch(self.name, R @ self.center_m + t, R @ self.axis_u, R @ self.axis_v,
-                          R @ self.normal, self.half_size_m.copy())
-
-
-def as_reference_planes(patches: Sequence[PlanePatch], accuracy_m: float = 1e-3) -> ReferencePlanes:
-    """The (infinite) planes of ``patches``; ``accuracy_m`` only fills the file field."""
-    return ReferencePlanes(accuracy_m=accuracy_m, planes=tuple(p.as_reference_plane() for p in patches))
-
 
 TABLE2_NAMES = ("RP1", "RP2", "RP4", "RP5", "RP6", "RP8", "RP10", "RP11")
 
@@ -228,15 +217,6 @@ def polar_jacobian_columns(points_s: FloatArray) -> tuple[FloatArray, FloatArray
                         np.where(at_pole, np.abs(z), y * z / rho_safe),
                         -rho], axis=1)
     return j_d, j_phi, j_theta
-
-
-def polar_covariance_xyz(points_s: FloatArray, sigma_d_m: float, sigma_phi_rad: float,
-                         sigma_theta_rad: float) -> FloatArray:
-    """Covariance matrices ``(N, 3, 3)`` (m^2) of scanner points from uncorrelated polar errors."""
-    j_d, j_phi, j_theta = polar_jacobian_columns(points_s)
-    return (sigma_d_m**2 * j_d[:, :, None] * j_d[:, None, :]
-            + sigma_phi_rad**2 * j_phi[:, :, None] * j_phi[:, None, :]
-            + sigma_theta_rad**2 * j_theta[:, :, None] * j_theta[:, None, :])
 
 
 def projected_variance(points_s: FloatArray, directions_s: FloatArray, sigma_d_m: float,

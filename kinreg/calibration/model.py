@@ -11,9 +11,9 @@ boresight ``R_bs = Rz(kappa) @ Ry(phi) @ Rx(omega)`` (radians).
 Stochastic model (seed 000 eq. 4, section 4.2) and how the correlations are kept:
 
 * Every scanner point is observed in polar form; its covariance follows from sigma_d, sigma_phi,
-  sigma_theta (:func:`~kinreg.calibration.arrangement.polar_covariance_xyz`, the full 3x3, not
-  only its diagonal as in the seed). The condition is linear in ``P_s`` with
-  ``B = n^T R_lb R_bs``, so each condition gets the variance ``B Sigma_P B^T``.
+  sigma_theta (the full 3x3, not only its diagonal as in the seed). The condition is linear in
+  ``P_s`` with ``B = n^T R_lb R_bs``, so each condition gets the variance ``B Sigma_P B^T``
+  (:func:`~kinreg.calibration.arrangement.projected_variance`).
 * Pose errors are shared by all points of a tracker epoch, so conditions of one epoch are
   correlated. Instead of a block-diagonal (dense per epoch) Sigma_ww, every tracker epoch gets six
   nuisance unknowns ``(dt, dtheta)`` (translation in l, small rotation ``R = Exp(dtheta) R_meas``)
@@ -72,15 +72,6 @@ def boresight_matrix(omega_rad: float, phi_rad: float, kappa_rad: float) -> Floa
     return _boresight_and_derivatives(np.array([omega_rad, phi_rad, kappa_rad]))[0]
 
 
-def boresight_angles(R_bs: ArrayLike) -> FloatArray:
-    """``(omega, phi, kappa)`` in radians of a rotation matrix (inverse of :func:`boresight_matrix`)."""
-    R = np.asarray(R_bs, dtype=np.float64)
-    phi = math.asin(max(-1.0, min(1.0, -R[2, 0])))
-    omega = math.atan2(R[2, 1], R[2, 2])
-    kappa = math.atan2(R[1, 0], R[0, 0])
-    return np.array([omega, phi, kappa])
-
-
 def _boresight_and_derivatives(angles: FloatArray) -> tuple[FloatArray, FloatArray]:
     """``R_bs`` and ``dR_bs/d(omega, phi, kappa)`` as (3, 3, 3) (derivative index first)."""
     om, ph, ka = angles
@@ -114,10 +105,6 @@ class SystemCalibration:
         """From ``(tx, ty, tz, omega, phi, kappa)`` in metres and radians."""
         v = np.asarray(x, dtype=np.float64).reshape(6)
         return cls(v[:3], v[3:])
-
-    @classmethod
-    def from_pose(cls, T_b_s: Pose) -> SystemCalibration:
-        return cls(T_b_s.t_xyz, boresight_angles(T_b_s.rotation_matrix))
 
     def as_vector(self) -> FloatArray:
         return np.concatenate([self.lever_arm_m, self.boresight_rad])

@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -408,10 +408,3 @@ def separate_optimisation(result: GridResult, fitness: str = "f3",
     step1 = result.row(int(np.ravel_multi_index((iy, iz, ia, ib, ig), g.shape)))
     step2 = result.row(int(np.ravel_multi_index((iy, iz, ja, jb, jg), g.shape)))
     return {"positions": step1, "angles": step2}
-
-
-def time_call(fn: Callable[[], object]) -> float:
-    """Wall-clock seconds of ``fn()`` (helper for the benchmark)."""
-    t0 = time.perf_counter()
-    fn()
-    return time.perf_counter() - t0

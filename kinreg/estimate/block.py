@@ -59,16 +59,6 @@ _NOT_SNOOPED = [ObservationKind.TRAJECTORY.value, ObservationKind.DRIFT.value, O
                 *_SCAN_PLANES]
 
 
-def adjoint(T: Pose) -> FloatArray:
-    """SE(3) adjoints ``(..., 6, 6)`` for twists ordered (rho, phi): ``[[R, [t]x R], [0, R]]``."""
-    R = T.rotation_matrix
-    A = np.zeros((*T.shape, 6, 6))
-    A[..., :3, :3] = R
-    A[..., 3:, 3:] = R
-    A[..., :3, 3:] = skew(T.t_xyz) @ R
-    return A
-
-
 @dataclasses.dataclass(frozen=True)
 class _Active:
     """The active observations as arrays. Unknowns are numbered as nodes: the stations 0..n-1

@@ -352,9 +352,3 @@ def first_station_rotation(axes: FloatArray, station: int, T: Pose, sigma_rad: f
     info = np.zeros((6, 6))
     info[3:, 3:] = A.T @ A / sigma_rad**2
     return RelativeObservation(ObservationKind.STATION, station, -1, T, info, len(axes))
-
-
-def control_residuals(ties: Sequence[ControlTie], adjusted: Pose) -> FloatArray:
-    """Per tie: the reference point on the adjusted stations' interpolated pose minus the surveyed
-    coordinates (n, 3) [m]."""
-    return np.array([t.predicted(adjusted) - t.xyz for t in ties]).reshape(-1, 3)

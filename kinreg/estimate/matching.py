@@ -79,15 +79,6 @@ def chosen_partners(positions_xyz: FloatArray, i: int, partners: np.ndarray, bud
     return np.sort(partners[by_pass[order]])
 
 
-def transform_planes(normals: FloatArray, d_m: FloatArray, T_i_j: Pose) -> tuple[FloatArray, FloatArray]:
-    """Planes (normals (k, 3), offsets (k,)) of frame j expressed in frame i.
-
-    From ``n_j . x_j = d_j`` and ``x_i = R x_j + t``: ``(R n_j) . x_i = d_j + (R n_j) . t``.
-    """
-    n_i = normals @ T_i_j.rotation_matrix.T
-    return n_i, d_m + n_i @ T_i_j.t_xyz
-
-
 def _box_in_plane(points: FloatArray, origin: FloatArray, u: FloatArray, v: FloatArray) -> tuple[float, ...]:
     """(umin, vmin, umax, vmax) of ``points`` (k, 3) about ``origin`` along ``u`` and ``v``."""
     local = points - origin
@@ -188,7 +179,7 @@ def match_planes(
     if not si.planes or not sj.planes:
         return ()
     n_a, d_a, c_a = si.normals, si.d_m, si.centroids_xyz
-    # T_i_j's rotation formed once (Pose.apply and transform_planes form it on every call), and
+    # T_i_j's rotation formed once (Pose.apply forms it on every call), and
     # applied as they apply it: the same products, the same floats.
     R_i_j, t_i_j = T_i_j.rotation_matrix, T_i_j.t_xyz
     n_b = sj.normals @ R_i_j.T

@@ -268,10 +268,6 @@ class E57SequenceWriter:
             self.abort()
             raise OutputError(f"cannot create E57 file: {exc.strerror or exc}", self.path) from exc
 
-    @property
-    def is_open(self) -> bool:
-        return self._file is not None
-
     def add_scan(self, scan: Scan) -> None:
         """Append one scan (points in its own frame, pose ``T_obj_scan``) as a ``data3D`` entry.
 

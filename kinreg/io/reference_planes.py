@@ -101,11 +101,6 @@ class PlaneExtent:
         x, y = self.polygon_uv[:, 0], self.polygon_uv[:, 1]
         return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
-    @property
-    def corners_m(self) -> FloatArray:
-        """Corners ``(M, 3)`` in the object frame."""
-        return self.origin_m + self.polygon_uv[:, :1] * self.axis_u + self.polygon_uv[:, 1:] * self.axis_v
-
     def to_uv(self, points_xyz: FloatArray) -> FloatArray:
         """In-plane coordinates ``(N, 2)`` of object-frame points ``(N, 3)`` (projected)."""
         d = np.asarray(points_xyz, dtype=np.float64) - self.origin_m
