@@ -19,8 +19,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from kinreg import _logging  # noqa: F401  (attaches the NullHandler)
-
-__version__ = "0.1.0"
+from kinreg._version import __version__
 
 # public name -> module that defines it
 _API = {

@@ -8,10 +8,7 @@ library never prints and never exits.
 from __future__ import annotations
 
 from os import PathLike
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from kinreg.types import BlockResult
+from typing import Any
 
 
 class KinregError(Exception):
@@ -53,9 +50,11 @@ class EstimationError(KinregError):
 
 class AdjustmentFailedError(EstimationError):
     """The block adjustment ran but gave no result (no convergence, a non-finite value, a
-    negative redundancy). ``result`` is the failed adjustment, for a report marked failed."""
+    negative redundancy). ``result`` is the failed adjustment (a :class:`kinreg.types.BlockResult`),
+    for a report marked failed; typed loosely here because :mod:`kinreg.types` raises these
+    errors, and this module imports nothing of kinreg's."""
 
-    def __init__(self, reason: str, result: BlockResult) -> None:
+    def __init__(self, reason: str, result: Any) -> None:
         super().__init__(reason)
         self.result = result
 

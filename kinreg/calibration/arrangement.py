@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 
 from kinreg.errors import ConfigError
 from kinreg.geometry import FloatArray
-from kinreg.io.reference_planes import PlaneExtent, ReferencePlane
+from kinreg.survey import PlaneExtent, ReferencePlane
 
 logger = logging.getLogger(__name__)
 

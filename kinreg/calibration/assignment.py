@@ -56,7 +56,7 @@ from kinreg.calibration.model import (
 )
 from kinreg.errors import EstimationError, InputError
 from kinreg.geometry import FloatArray
-from kinreg.io.reference_planes import ReferencePlanes
+from kinreg.survey import ReferencePlanes
 from kinreg.types import Trajectory
 
 logger = logging.getLogger(__name__)

@@ -55,7 +55,7 @@ from kinreg.geometry import (
     rotvec_to_quat,
     skew,
 )
-from kinreg.io.reference_planes import ReferencePlanes
+from kinreg.survey import ReferencePlanes
 from kinreg.types import Trajectory
 
 logger = logging.getLogger(__name__)

@@ -37,7 +37,7 @@ from kinreg.calibration.arrangement import (
 )
 from kinreg.calibration.model import ScannerSigmas, SystemCalibration, TrackerSigmas
 from kinreg.geometry import FloatArray, Pose, quat_multiply, rotvec_to_quat
-from kinreg.io.reference_planes import ReferencePlane, ReferencePlanes
+from kinreg.survey import ReferencePlane, ReferencePlanes
 from kinreg.types import Trajectory
 
 logger = logging.getLogger(__name__)

@@ -46,7 +46,7 @@ from kinreg.config import ControlConfig
 from kinreg.errors import InputError
 from kinreg.estimate.drift import DriftRates, window_bias_covariance
 from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_multiply, quat_to_rotvec, skew
-from kinreg.io.control import ControlPoint, ControlPoints
+from kinreg.survey import ControlPoint, ControlPoints
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation, ScanKind, Station, Trajectory
 
 log = logging.getLogger(__name__)

@@ -28,8 +28,8 @@ from kinreg.estimate.plane_nodes import plane_node_observations
 from kinreg.estimate.reference import associate, tie_observations
 from kinreg.estimate.snooping import chi2_quantile
 from kinreg.geometry import Pose, pose_sigmas, skew
-from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.progress import Progress
+from kinreg.survey import ReferencePlanes
 from kinreg.types import (
     BlockResult,
     Link,

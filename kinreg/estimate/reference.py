@@ -41,7 +41,7 @@ import numpy as np
 from kinreg.config import ReferenceConfig
 from kinreg.errors import ConfigError
 from kinreg.geometry import FloatArray, Pose, skew, tangent_basis
-from kinreg.io.reference_planes import ReferencePlanes
+from kinreg.survey import ReferencePlanes
 from kinreg.types import ObservationKind, Plane, RelativeObservation, ScanKind, Station, Tie, Trajectory
 
 log = logging.getLogger(__name__)

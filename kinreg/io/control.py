@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,55 +41,14 @@ import numpy as np
 from kinreg.errors import InputError
 from kinreg.geometry import FloatArray
 
+# The file's content as the estimation takes it; importable from here as well (redundant aliases:
+# re-exported).
+from kinreg.survey import ControlPoint as ControlPoint
+from kinreg.survey import ControlPoints as ControlPoints
+
 REQUIRED_COLUMNS = ("name", "x", "y", "z", "sigma_mm")
 TIME_COLUMNS = ("t_start", "t_end")
 TARGET_COLUMNS = ("station", "sx", "sy", "sz")
-
-
-@dataclass(frozen=True, eq=False)
-class ControlPoint:
-    """One surveyed point: its name, object-frame coordinates [m], standard deviation per axis
-    [m], and the interval [s] the unit stood on it (``nan``: to be found in the trajectory); or,
-    for a target in a static scan, the scan (``station``, as the file names it) and the target's
-    scan-frame coordinates ``scan_xyz`` (3,) [m]. ``line`` is the row's line (for messages)."""
-
-    name: str
-    xyz: FloatArray
-    sigma_m: float
-    t_start_s: float = math.nan
-    t_end_s: float = math.nan
-    station: str = ""
-    scan_xyz: FloatArray | None = None
-    line: int = 0
-
-    @property
-    def has_times(self) -> bool:
-        return math.isfinite(self.t_start_s)
-
-    @property
-    def is_target(self) -> bool:
-        """A target in a static scan (not a stand-still of the unit)."""
-        return self.scan_xyz is not None
-
-
-@dataclass(frozen=True, eq=False)
-class ControlPoints:
-    """The points of one file, in file order; ``source`` is the file (for messages)."""
-
-    points: tuple[ControlPoint, ...]
-    source: str
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.points)
-
-    @property
-    def targets(self) -> tuple[ControlPoint, ...]:
-        """The targets in static scans (rows with a ``station``)."""
-        return tuple(p for p in self.points if p.is_target)
 
 
 def read_control_points(path: str | Path) -> ControlPoints:

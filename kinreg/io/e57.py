@@ -22,7 +22,7 @@ Conventions, for reading and writing alike:
   by ``cartesianInvalidState``/``sphericalInvalidState`` != 0 carry no usable position and are
   dropped (logged).
 - **Bounds.** ``cartesianBounds`` are in the scan frame (E57 standard 8.4.3); the object-frame
-  bounds in :class:`~kinreg.io.cloud.CloudInfo` are the box around the posed corners.
+  bounds in :class:`~kinreg.io.reader.CloudInfo` are the box around the posed corners.
   pye57's own writer stores object-frame bounds instead, so treat them as informative only.
 
 The writer of the quasi-static sequence is :mod:`kinreg.io.e57_writer`.
@@ -44,7 +44,7 @@ from pye57 import libe57
 
 from kinreg.errors import CloudError
 from kinreg.geometry import FloatArray, Pose, quat_normalize
-from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo, TimeFilter
+from kinreg.io.reader import DEFAULT_CHUNK_POINTS, CloudInfo, TimeFilter
 from kinreg.types import CloudChunk, Scan, ScanKind
 
 logger = logging.getLogger(__name__)

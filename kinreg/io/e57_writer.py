@@ -50,7 +50,7 @@ import numpy as np
 from crc32c import crc32c
 from numpy.typing import NDArray
 
-from kinreg import __version__
+from kinreg._version import __version__
 from kinreg.errors import OutputError
 from kinreg.geometry import FloatArray
 from kinreg.io.direct_io import DirectWriter

@@ -14,10 +14,10 @@ import lazrs
 import numpy as np
 
 from kinreg.errors import CloudError
-from kinreg.io.cloud import DEFAULT_CHUNK_POINTS, CloudInfo, RawChunk, TimeFilter
 from kinreg.io.direct_io import read_pieces
 from kinreg.io.las_header import check_las_file
 from kinreg.io.quiet import library_calls
+from kinreg.io.reader import DEFAULT_CHUNK_POINTS, CloudInfo, RawChunk, TimeFilter
 from kinreg.types import CloudChunk
 
 log = logging.getLogger(__name__)

@@ -40,7 +40,6 @@ from numpy.typing import NDArray
 from kinreg.config import ReportConfig
 from kinreg.geometry import FloatArray
 from kinreg.io.atomic import atomic_path
-from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.crs import describe_crs
 from kinreg.report.deviations import Deviations, StaticPlanes
 from kinreg.report.json import _clean
@@ -67,6 +66,7 @@ from kinreg.report.sections import (
     render_time_image,
 )
 from kinreg.report.thickness import CellMoments, column_map, compare
+from kinreg.survey import ReferencePlanes
 from kinreg.types import Trajectory
 
 log = logging.getLogger(__name__)

@@ -10,15 +10,15 @@ from typing import Any
 
 import numpy as np
 
-import kinreg
+from kinreg._version import __version__
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.drift import DriftRates
 from kinreg.estimate.network import Network
 from kinreg.estimate.reference import as_built
 from kinreg.estimate.snooping import residual_size
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
-from kinreg.io.reference_planes import ReferencePlanes
 from kinreg.report.tables import stations_table, write_text
+from kinreg.survey import ReferencePlanes
 from kinreg.types import BlockResult, LinkStatus, ObservationTest, Plane, ScanKind, TrajectoryJump
 
 REPORT_SCHEMA_VERSION = 1
@@ -103,7 +103,7 @@ def build_report(
             tests_by_kind.setdefault(t.kind.value, []).append(t.normalised)
     return {
         "schema_version": REPORT_SCHEMA_VERSION,
-        "kinreg_version": kinreg.__version__,
+        "kinreg_version": __version__,
         "inputs": inputs,
         "config_toml": config_toml,
         "slicing": slicing,
@@ -180,7 +180,7 @@ def build_failure_report(*, inputs: dict[str, Any], config_toml: str, result: Bl
     no stations, links or corrections (none of them is a result)."""
     return {
         "schema_version": REPORT_SCHEMA_VERSION,
-        "kinreg_version": kinreg.__version__,
+        "kinreg_version": __version__,
         "inputs": inputs,
         "config_toml": config_toml,
         "adjustment": {"status": _status(result), "failure": result.failure, "datum": datum,

@@ -24,7 +24,7 @@ import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -34,12 +34,20 @@ from kinreg.geometry import Pose
 from kinreg.types import Plane, Scan, ScanKind, SlicingSummary, Trajectory
 
 if TYPE_CHECKING:
-    from kinreg.run.output_folder import CachedSlices
     from kinreg.run.spill import QuasiStaticSequence
     from kinreg.types import BlockResult, Station, TrajectoryJump
 
 # A per-run output of an earlier run in the output folder (or its temporary file).
 _RUN_OUTPUT = re.compile(r"\.?(?:trajectory_)?corrected_r(\d+)\.")
+
+
+class SlicedRun(Protocol):
+    """What the report needs of a run's slices (:class:`kinreg.run.output_folder.CachedSlices`,
+    which imports this module): the cloud's point count and the number of windows."""
+
+    n_points_input: int
+
+    def __len__(self) -> int: ...
 
 
 @dataclass(frozen=True)
@@ -129,7 +137,7 @@ def adjusted_sequence_scans(sequences: Sequence[QuasiStaticSequence], poses: Pos
 # --------------------------------------------------------------------------- report.json
 
 
-def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory], sliced: Sequence[CachedSlices],
+def inputs_report(runs: Sequence[RunInputs], trajectories: Sequence[Trajectory], sliced: Sequence[SlicedRun],
                   static: Path | None = None, reference: Path | None = None) -> dict[str, Any]:
     """``report.json`` ``inputs``: ``runs`` lists every run (its files, counts and output names).
     The keys of schema 1 keep their meaning: ``trajectory`` and ``cloud`` are the run's files

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-import kinreg
+from kinreg._version import __version__
 from kinreg.errors import OutputError
 from kinreg.run.liveness import process_alive
 
@@ -78,7 +78,7 @@ class StageCache:
         of part is serialised). Raises :class:`TypeError` for a part it cannot serialise stably
         and :class:`OutputError` for an input file that does not exist."""
         h = hashlib.sha256()
-        _feed(h, ["kinreg-cache", CACHE_SCHEMA_VERSION, kinreg.__version__, stage])
+        _feed(h, ["kinreg-cache", CACHE_SCHEMA_VERSION, __version__, stage])
         for part in parts:
             _feed(h, part)
         return h.hexdigest()
