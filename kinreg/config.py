@@ -189,7 +189,7 @@ class OnFailure(enum.Enum):
 class BlockConfig:
     alpha: float = 0.001  # significance of the global test and of data snooping
     # Levenberg-Marquardt iterations per adjustment round (a 0.5 m drift from a cold start: 20-30; a
-    # scan frame its planes fix to a metre along one axis, pulled by a wrong link: 71, issue #14)
+    # scan frame its planes fix to a metre along one axis, pulled by a wrong link: about 70)
     max_iterations: int = 200
     convergence: float = 1e-9  # converged when no unknown changes by more (m or rad) ...
     cost_tolerance: float = 1e-12  # ... or the weighted squared residuals fall by less than this share

@@ -287,8 +287,7 @@ def _pose_residuals(poses: Pose, R: FloatArray, velocity: FloatArray, a: _Active
         # as it is: the network's turn about its datum stays free). J_j differs from the identity by
         # the residual's rotation only (a few milliradians), but taking the identity is not harmless:
         # Gauss-Newton's fixed point is then not the minimum, and near it the undamped step raises the
-        # cost while the model says there is more to gain (issue #14: a held-out run's block ended "no
-        # convergence after 50 iterations").
+        # cost while the model says there is more to gain, so the adjustment never converges.
         R_inv = quat_to_matrix(quat_conjugate(q_rel))
         ad = np.zeros((len(at), 6, 6))  # Ad(rel^-1) = [[R', [t']x R'], [0, R']] with rel^-1 = (R', t') = (R^T, -R^T t)
         ad[:, :3, :3] = R_inv
@@ -323,8 +322,8 @@ def _scan_plane_residuals(R_Z: FloatArray, t_Z: FloatArray, q_rel: FloatArray, t
     pose residual's ``phi_x, phi_y, rho_z``; but the pose residual's offset is the height of the
     node's origin, which a tilt turns into a slope along the plane: the origin then slides towards
     where the tilt lowers the cost, held only by the node's 1 m gauge, and Gauss-Newton crawls (with
-    the identity for the node's Jacobian it stops elsewhere than the minimum instead: a held-out
-    run ended "no convergence after 50 iterations", issue #14)."""
+    the identity for the node's Jacobian it stops elsewhere than the minimum instead, and does
+    not converge)."""
     R_rel = quat_to_matrix(q_rel)
     R_Zt = np.transpose(R_Z, (0, 2, 1))
     D = R_Zt @ R_rel
@@ -492,8 +491,8 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
         last_round = []
         if not converged:
             # A round that did not converge ends the adjustment, failed: its residuals are not the
-            # minimum's, and variance components or rejections drawn from them steered a held-out
-            # run (world, seed 5) to a solution 63 mm off that passed its global test (issue #14).
+            # minimum's, and variance components or rejections drawn from them can steer the network
+            # to a wrong solution that then passes its global test (its weights were made to fit it).
             break
         if config.variance_components and vce_rounds < config.max_variance_rounds:
             new_weights = variance_components(tests, weights, config.alpha, _LOWERABLE)
@@ -507,13 +506,13 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
         # The trajectory's own links are not snooped: its gross errors (jumps) are found in the
         # trajectory itself (kinreg.estimate.jumps), and a link that does not fit says that the
         # drift model is off, which the variance components answer. Rejecting it would leave the
-        # direction it carries to the planes, which may not fix it (a corridor): the walks of the
-        # accuracy matrix lost alternate links there and drifted by 10-20 mm.
+        # direction it carries to the planes, which may not fix it (a corridor): the stations there
+        # would lose alternate links and drift along it.
         # Nor are the scan planes against their physical planes (kinreg.estimate.plane_nodes): their
         # matches passed their pair's tests and the links' snooping before; what misfits now is the
         # window's model (a shear the drift model leaves), and rejecting it takes the planes from
-        # the stations that need them (GNSS/INS-like seed 8: the run's last four stations lost a
-        # wall each, round by round, and drifted by 16 mm along it).
+        # the stations that need them: round by round, the stations a wall alone holds along a
+        # direction would lose it and drift along that direction.
         candidates = ~np.isin(tests.index, list(protected)) & ~np.isin(tests.kind, _NOT_SNOOPED)
         worst = worst_outliers(tests, candidates, config.alpha, budget) if config.data_snooping and budget > 0 else []
         if worst:
@@ -659,19 +658,18 @@ def _stepped(poses: Pose, velocity: FloatArray, fixed: np.ndarray, dx: FloatArra
 # itself, lambda growing tenfold from _FIRST_DAMPING, up to _MAX_DAMPING (then no descent is left:
 # a minimum). The ladder starts low: a direction that only a trajectory link's lever fixes has an
 # eigenvalue a millionth of its diagonal, and there the undamped step overshoots by the valley's
-# curvature, while 1e-4 shrank the step to a hundredth and every iteration fell back to it (a
-# held-out run crawled 50 iterations at 0.5 mm a step, sigma0 0.731; from 1e-8 the third try,
-# 1e-6, took the step and the next two converged, 0.720: issue #14).
+# curvature; a first damping near 1e-4 shrinks the step along that direction to a hundredth, every
+# iteration falls back to it, and the adjustment crawls along the valley (a fraction of a millimetre
+# an iteration) until the iteration limit, where a damping of 1e-6 takes the step.
 _FIRST_DAMPING = 1e-8
 _MAX_DAMPING = 1e8
 # Converged when the undamped step's predicted fall of the cost (the Newton decrement b^T N^-1 b, in
 # units of the weighted squares) is below this: the model's minimum is then within a thousandth of
 # a standard deviation of the unknowns (the step's length in the metric of their covariance, N),
 # whatever their units and however many. Where the Jacobians are not quite the residuals' (a
-# drift velocity's turn into station j's axes is left out; before issue #14 the second station's
-# was the identity), the cost can rise by a few 1e-7 along a step the model says gains 5e-10:
-# without this test the damped steps then crawled by 5e-9 m an iteration until the limit (the
-# tilted head with GNSS/INS-like drift failed "no convergence after 50 iterations").
+# drift velocity's turn into station j's axes is left out), the cost can rise by a few 1e-7 along
+# a step the model says gains 5e-10: without this test the damped steps would crawl by nanometres
+# an iteration until the limit, and the adjustment would fail at its minimum.
 _DECREMENT = 1e-6
 
 

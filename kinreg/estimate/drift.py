@@ -706,8 +706,9 @@ def fits_better(cost: float, cost_against: float, redundancy: float, alpha: floa
 # Fewer plane links of consecutive-enough stations than this leave the coupling to the adjusted steps.
 _MIN_COUPLING_LINKS = 5
 # The planes tell the coupling where its two regimes (0 and 1) lie at least this many of its sigmas
-# apart; a short run with little attitude drift read 0.87 at a sigma of 0.71 (a SLAM-like run; the
-# trajectory's own steps read 0.19 and its stations came 1.8 mm off instead of 0.6).
+# apart. A short run with little attitude drift reads nearly any value at a sigma as wide as the
+# gap, and a wrong regime misplaces its stations by more than the trajectory's own steps, read
+# instead, would.
 _COUPLING_APART = 3.0
 # Plane links over more than this many station spacings carry too much of the trajectory's own drift.
 _COUPLING_SPACINGS = 3.0

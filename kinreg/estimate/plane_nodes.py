@@ -3,8 +3,8 @@
 A pairwise link carries the errors of both scans' planes. A scan linked to eight others carries
 its planes' errors into eight links, and the block, which takes the links as independent, counts
 them eight times: the network's turn about a station whose few planes fix its frame poorly gets a
-sigma several times too small (issue #14: the datum station of the large class, 0.08 mrad reported
-where its five planes fix 0.13 mrad).
+sigma several times too small (a station of five planes is reported fixed far better than its
+planes fix it).
 
 Here the links only say which planes are the same physical plane (their matches, joined over all
 links into clusters). Each cluster becomes a node of the block, a pose ``F_g`` whose z axis is the
@@ -101,8 +101,8 @@ def plane_information(plane: Plane, R: FloatArray, origin: FloatArray) -> tuple[
     the frame's x and y axes (rank 2, their marginal information) and the offset at the origin
     given the tilts (rank 1); zero along the three free directions. The two are independent, so
     each gets a variance component of its own: a plane fit's offset and tilts are not off from
-    their floors by the same factor (in the simulated medium class, the offsets' residuals are a
-    tenth of their model's, the tilts' a third)."""
+    their floors by the same factor (one component for both would leave the sigmas of one too
+    large and those of the other too small)."""
     x, y = R[:, 0], R[:, 1]
     u, v = plane.basis_uv[0], plane.basis_uv[1]
     M = np.array([[x @ u, x @ v], [y @ u, y @ v]])  # (a, b) along (u, v) -> along (x, y)
@@ -127,9 +127,9 @@ def floor_bound(tilts: FloatArray, offset: FloatArray, floors: tuple[float, floa
     :func:`plane_information`), have a model that is mostly the floors (more than half the
     variance): a large plane of many points, whose least-squares sigmas are far below them. Those
     and the planes set by their points' noise are not off from their models by the same factor
-    (medium class, world seed 2: 0.25 and 1.0 where one component for both was 0.36), so each gets
-    a variance component of its own. With the components estimated up or down, the simulated
-    medium class's pooled z went from 0.74-0.82 to 0.85-0.88 (benchmarks/RESULTS.md)."""
+    (the floors stand for errors a window's planes share, the noise for their points' scatter), so
+    each gets a variance component of its own: one for both would fit neither, and leave the
+    reported sigmas too large for one group and too small for the other."""
     tilt_var = 0.5 * float(np.trace(np.linalg.inv(tilts[np.ix_(_DETERMINED[:2], _DETERMINED[:2])])))
     offset_var = 1.0 / float(offset[_DETERMINED[2], _DETERMINED[2]])  # its weight vector ends in 1
     return floors[0] ** 2 > 0.5 * tilt_var, floors[1] ** 2 > 0.5 * offset_var
@@ -146,8 +146,7 @@ def is_level(normal_obj: FloatArray) -> bool:
     window neither tilts nor shifts it, while it turns and shifts every wall. With one variance
     component for both, the walls (most of the planes) set it: the level planes then weigh too
     little, and the heights and tilts of the network they fix come out pessimistic, while the
-    walls weigh too much (on the held-out building the level planes' offsets were at the 25x
-    cap, the walls' at 0.15; benchmarks/RESULTS.md)."""
+    walls weigh too much."""
     return abs(float(normal_obj[2])) > _LEVEL_COS
 
 

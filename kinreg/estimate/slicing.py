@@ -124,11 +124,10 @@ def shorter_window_s(window_s: float, smear_m: FloatArray, planes: Sequence[tupl
     made shorter, or the windows are not cut by duration). A smear within
     ``config.shown_smear_share`` of the noise counts only where ``planes_show_it`` (the planes'
     residuals show it): shorter windows hold fewer planes, a weaker network, and below the noise
-    the window deformation the block carries can account for the smear (held-out building, world
-    drift, seed 8: smear 0.83 of the noise, 6 s windows 1.8 mm RMS, 3.5 s windows 2.7 mm). Beyond
-    the noise the windows' length is also the correction's time resolution, which no plane
-    residual shows (0.5 m / 2 deg over 90 s: smear 2.1-2.3 of the noise, planes fitting their
-    model, the cloud's planes 1.7-3.5 % thicker with 6 s windows than with 2 s)."""
+    the window deformation the block carries can account for the smear, so that shorter windows
+    would cost more accuracy than they gain. Beyond the noise the windows' length is also the
+    correction's time resolution, which no plane residual shows: a fast drift leaves planes that
+    fit their model and a corrected cloud whose planes are thicker than shorter windows make them."""
     finite = smear_m[np.isfinite(smear_m)]
     noise = [p.rms_m for found in planes for p in found]
     if not config.adaptive or config.mode is not WindowMode.DURATION or not len(finite) or not noise:

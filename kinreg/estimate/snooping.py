@@ -285,9 +285,9 @@ def worst_outliers(tests: ObservationTests, candidates: np.ndarray, alpha: float
 # How far a kind whose errors show in its residuals may be trusted above its a-priori model: its
 # weight at most 25x (sigmas a fifth). Below that the plane floors (0.35 mm, 0.14 mrad) would fall under
 # what a plane fit's own least squares give (1-3 mm of range noise over a few thousand points:
-# 0.02-0.06 mm): no residuals can say a plane is better known than its points make it. In the
-# simulated medium class the offsets' residuals are a tenth of their model's; at a cap of 4x the
-# pooled error/sigma stayed at 0.72-0.80 in y and z.
+# 0.02-0.06 mm): no residuals can say a plane is better known than its points make it. A much
+# lower cap would keep the sigmas of a kind whose residuals are far below its model (plane offsets:
+# a tenth) well above its errors.
 MAX_WEIGHT_GAIN = 25.0
 
 
