@@ -29,10 +29,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from pathlib import Path
 import os
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 

@@ -10,7 +10,8 @@ and the median are reported, with the planes found and the accuracy of the well-
 BLAS and OpenMP are limited to one thread (``--threads``) to measure the one-core figure the
 budget is stated in (231 scans in a few minutes).
 
-Usage: python benchmarks/plane_detection.py [--points 3e5 1e6] [--repeat 5] [--out benchmarks/results/plane_detection.json]
+Usage: python benchmarks/plane_detection.py [--points 3e5 1e6] [--repeat 5]
+       [--out benchmarks/results/plane_detection.json]
 """
 
 from __future__ import annotations

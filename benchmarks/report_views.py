@@ -9,7 +9,8 @@ heights). Optionally copies the section PNGs of one run into ``benchmarks/result
 
 Usage:
     python benchmarks/report_views.py --run sample_data/run_trajectory.txt sample_data/run_cloud.laz \\
-        --run /tmp/big/run_trajectory.txt /tmp/big/run_cloud.laz --keep-pngs 1 --out benchmarks/results/report_views.json
+        --run /tmp/big/run_trajectory.txt /tmp/big/run_cloud.laz --keep-pngs 1 \\
+        --out benchmarks/results/report_views.json
 
 The views' own seconds are CPU seconds of the thread that gathers them (``gather``) and draws
 the figures (``figures``): corrected.laz is decoded and encoded on other threads at the same
@@ -112,7 +113,8 @@ def main() -> None:
                   f"{entry['thickness']['median_ratio_after_before']:.3f}", flush=True)
             if args.keep_pngs == k:
                 for name in ("section_1_before.png", "section_1_after.png"):
-                    shutil.copy(Path(tmp) / f"on{k}" / "figures" / name, REPO / "benchmarks" / "results" / f"report_{name}")
+                    shutil.copy(Path(tmp) / f"on{k}" / "figures" / name,
+                                REPO / "benchmarks" / "results" / f"report_{name}")
     Path(args.out).write_text(json.dumps({"command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:]]),
                                           "cpu_count": os.cpu_count(), "results": results}, indent=1) + "\n")
 

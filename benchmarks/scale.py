@@ -289,7 +289,8 @@ def markdown(report: dict[str, Any]) -> str:
                     key=lambda s: min(list(r["process"]["timings_s"]).index(s) for r in rows
                                       if s in r["process"]["timings_s"]))
     lines = ["### `kinreg process` against the I/O floor (`benchmarks/scale.py`)", "",
-             f"Command: `{report['command']}` on {report['cpus']} shared cores ({report['note']}, {report['date']}).", "",
+             f"Command: `{report['command']}` on {report['cpus']} shared cores "
+             f"({report['note']}, {report['date']}).", "",
              "| points | run | scans | links | " + " | ".join(stages) + " | total process | peak RSS (largest process) "
              "| peak RSS (process tree) | decode all fields | slice vs decode | floor (decode + round trip) "
              "| process / floor |",
