@@ -10,8 +10,7 @@ compare with the truth:
 - honesty: normalised errors (error relative to the datum / reported sigma, per axis): the
   sigmas are relative to the datum, which carries the run's drift at its own time, so that
   drift is no error of the adjustment; their RMS should be 0.8-1.25. The absolute ones are kept
-  beside (``normalised_error_rms_per_axis_absolute``; before 2026-12-02's tenth session the
-  tables quoted those);
+  beside (``normalised_error_rms_per_axis_absolute``);
 - the corrected cloud: RMS of point-to-true-plane distances, next to what the true trajectory
   gives (the range noise alone) and what the drifted input gives.
 

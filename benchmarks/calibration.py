@@ -107,7 +107,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=200)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "calibration.json"))
     args = ap.parse_args()
-    report: dict = {"date": "2026-11-22", "machine": platform.processor() or platform.machine(),
+    report: dict = {"date": time.strftime("%Y-%m-%d"), "machine": platform.processor() or platform.machine(),
                     "cpus": os.cpu_count()}
 
     report["monte_carlo"] = [monte_carlo(args.reps, False), monte_carlo(args.reps, True)]
