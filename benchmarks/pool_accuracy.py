@@ -1,14 +1,16 @@
-"""Pool the runs of several ``eval_accuracy.py`` outputs per cell (scenario, drift model, class).
+"""Pool the runs of several ``accuracy_matrix.py`` outputs per cell (scenario, drift model, class).
 
 One run's stations share most of their error (it accumulates along the walk), so a run is a few
 independent samples at most, and three seeds judge the sigmas' honesty to about +-30 %. This
 script gathers the runs of every JSON given (e.g. seeds 1-3 in one file, 4-9 in another), and
 prints a Markdown table per cell: the runs, how many failed, the worst and median station RMS
 after a rigid fit, the worst max, how many runs miss 2 mm RMS / 6 mm max, the pooled
-error/sigma per axis (relative to the datum, see ``eval_accuracy.py``) with a 90 % bootstrap
+error/sigma per axis (relative to the datum, see ``accuracy_matrix.py``) with a 90 % bootstrap
 interval over the runs, and the worst cloud ratio.
 
-Usage: python benchmarks/pool_accuracy.py A.json [B.json ...] [--out pooled.json]
+With ``--across-scenes`` a cell is a drift model and class, pooled over the scenes.
+
+Usage: python benchmarks/pool_accuracy.py A.json [B.json ...] [--across-scenes] [--out pooled.json]
 """
 
 from __future__ import annotations
@@ -21,32 +23,35 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from eval_accuracy import pooled_interval
+from accuracy_matrix import pooled_interval
 
 RMS_TARGET_MM, MAX_TARGET_MM = 2.0, 6.0
 
 
-def cells(paths: list[Path]) -> dict[str, dict]:
-    """Runs per cell, keyed ``scenario/model/class``; a run given twice (same cell and seed) counts once."""
+def cells(paths: list[Path], across_scenes: bool = False) -> dict[str, dict]:
+    """Runs per cell, keyed ``scenario/model/class`` (``model/class`` across scenes); a run given
+    twice (same scene, cell and seed) counts once."""
+    fields = ("drift_model", "magnitude") if across_scenes else ("scenario", "drift_model", "magnitude")
     out: dict[str, dict] = {}
     for path in paths:
         for r in json.loads(path.read_text())["results"]:
-            key = "/".join(str(r.get(k)) for k in ("scenario", "drift_model", "magnitude"))
+            key = "/".join(str(r.get(k)) for k in fields)
             cell = out.setdefault(key, {"runs": {}, "failed": {}})
+            run = (r.get("scenario"), r.get("seed"))
             if "position_error_after_rigid_fit_mm" in r:
-                cell["runs"][r["seed"]] = r
+                cell["runs"][run] = r
             else:
-                cell["failed"][r.get("seed")] = r.get("error", "failed")
+                cell["failed"][run] = r.get("error", "failed")
     return out
 
 
 def summary(cell: dict) -> dict:
-    runs = [cell["runs"][s] for s in sorted(cell["runs"])]
+    runs = [cell["runs"][s] for s in sorted(cell["runs"], key=str)]
     rms = np.array([r["position_error_after_rigid_fit_mm"]["rms"] for r in runs])
     mx = np.array([r["position_error_after_rigid_fit_mm"]["max"] for r in runs])
     ms = [r["normalised_error_ms_per_axis"] for r in runs]
     return {
-        "seeds": sorted(cell["runs"]),
+        "seeds": sorted(cell["runs"], key=str),
         "failed_seeds": sorted(cell["failed"], key=str),
         "rms_mm_worst": float(rms.max()), "rms_mm_median": float(np.median(rms)), "max_mm_worst": float(mx.max()),
         "runs_over_rms_target": int(np.sum(rms > RMS_TARGET_MM)),
@@ -63,9 +68,10 @@ def summary(cell: dict) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("inputs", nargs="+", type=Path)
+    parser.add_argument("--across-scenes", action="store_true", help="pool each drift model over the scenes")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
-    table = {key: summary(cell) for key, cell in sorted(cells(args.inputs).items()) if cell["runs"]}
+    table = {key: summary(cell) for key, cell in sorted(cells(args.inputs, args.across_scenes).items()) if cell["runs"]}
     print("| cell | runs (failed) | station RMS worst / median, max worst [mm] | runs > 2 mm RMS / > 6 mm max "
           "| error/sigma x / y / z pooled | 90 % interval x / y / z | cloud worst | thickness worst |")
     print("|---|---|---|---|---|---|---|---|")

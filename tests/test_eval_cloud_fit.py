@@ -1,4 +1,4 @@
-"""The accuracy matrix's cloud figures (``benchmarks/eval_accuracy.py cloud_fit``): the plane
+"""The accuracy matrix's cloud figures (``benchmarks/accuracy_matrix.py cloud_fit``): the plane
 thickness is the points' spread about each physical plane's own fit, blind to a rigid motion of
 the whole cloud; the distance to the true planes is not."""
 
@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from eval_accuracy import cloud_fit
+from accuracy_matrix import cloud_fit
 
 from kinreg.geometry import Pose, rotvec_to_quat
 
