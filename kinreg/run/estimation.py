@@ -93,12 +93,12 @@ def estimate(run: RunContext) -> Estimated:
     :class:`~kinreg.errors.AdjustmentFailedError` (after :func:`fail_adjustment`: the folder's
     outputs removed, a report marked failed where ``[block] on_failure = "report"``) where an
     adjustment fails or the chosen network is no result."""
-    slicings = _Slicings(run)
-    operations = Operations(slicings.sliced_network, slicings.link_again, slicings.pass_adjusted, run.progress)
+    on_run = _RunOperations(run)
+    operations = Operations(on_run.sliced_network, on_run.link_again, on_run.pass_adjusted, run.progress)
     try:
         chosen = estimate_quasi_static(operations, StrategyConfig.from_config(run.config))
     except AdjustmentFailedError as e:
-        last = slicings.last
+        last = on_run.last
         assert last is not None  # an adjustment fails only once a slicing is there
         fail_adjustment(e.result, last.network, last.config, run.folder, _report_inputs(run, last))
     if chosen.failure:
@@ -115,7 +115,7 @@ def correct_runs(estimated: Estimated) -> list[DriftCorrection]:
                            adjusted.rates.coupling) for k, trajectory in enumerate(kinematic.trajectories)]
 
 
-class _Slicings:
+class _RunOperations:
     """The strategy's operations on one run's machinery; remembers the last slicing, whose
     decoded points the next one reads and whose network a failed adjustment reports."""
 
