@@ -48,7 +48,8 @@ def bench_links() -> dict:
     from kinreg.io.trajectory import read_trajectory
     from kinreg.progress import NullProgress
     from kinreg.run.spill import slice_quasi_static
-    from kinreg.run.stages import detect_all_planes, link_stations
+    from kinreg.run.link_stage import link_stations
+    from kinreg.run.planes_stage import detect_all_planes
 
     cfg = KinregConfig()
     data = REPO / "sample_data"

@@ -203,7 +203,7 @@ class BlockConfig:
     on_failure: OnFailure = OnFailure.STOP
     # Match the pairs again from the adjusted poses and adjust again, until the linked pairs no
     # longer change (loop closures across the accumulated drift), at most this often (and up to two
-    # rounds more while the measured coupling of the drift settles: kinreg.run.stages._settled_coupling).
+    # rounds more while the measured coupling of the drift settles: kinreg.estimate.strategy._settled_coupling).
     max_relink_rounds: int = 2
     # A scan frame and a sensor pose per quasi-static station, tied by the window bias (one error
     # shared by all the scan's plane links: kinreg.estimate.frames); false: one pose per station,

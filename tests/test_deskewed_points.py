@@ -137,27 +137,26 @@ def test_a_rigid_drift_of_the_world_shears_no_window(tmp_path: Path) -> None:
 def test_the_deskewed_planes_agree_with_the_adjustment_they_end_in(tmp_path: Path, monkeypatch) -> None:
     """Deskewed with the adjustment before the last pass, a GNSS/INS-like run's planes moved by
     several of their sigmas once deskewed with the last pass's own result: they are deskewed and
-    adjusted again until they agree (:func:`kinreg.run.stages._deskew_settled`)."""
-    import kinreg.run.pipeline as pipeline
-    import kinreg.run.stages as stages
+    adjusted again until they agree (:func:`kinreg.estimate.strategy._deskew_settled`)."""
+    import kinreg.estimate.strategy as strategy
     from kinreg.estimate.drift import deskewed_planes
     from kinreg.run.pipeline import process
 
     inputs = _gnss_ins_run(tmp_path, DriftModel.GNSS_INS)
     (tmp_path / "planes.toml").write_text("[slicing]\ndeskew_sheared = false\n")  # planes deskewed, not points
     moves = {}
-    adjust, default = stages.adjust_with_measured_drift, stages._DESKEW_ROUNDS
+    adjust, default = strategy.adjust_with_measured_drift, strategy._DESKEW_ROUNDS
 
-    def both(network, planes, static, config, progress, executor=None, trajectories=(), points_deskewed=None):
+    def both(network, planes, operations, config, trajectories=(), points_deskewed=None):
         for rounds in (0, default):
-            monkeypatch.setattr(stages, "_DESKEW_ROUNDS", rounds)
-            out = adjust(network, planes, static, config, progress, executor, trajectories, points_deskewed)
+            monkeypatch.setattr(strategy, "_DESKEW_ROUNDS", rounds)
+            out = adjust(network, planes, operations, config, trajectories, points_deskewed)
             again, _ = deskewed_planes(out.network.stations, planes, out.result, out.rates, trajectories)
-            moves[rounds] = stages._largest_move(out.network.planes, again)
+            moves[rounds] = strategy._largest_move(out.network.planes, again)
         return out
 
-    monkeypatch.setattr(pipeline, "adjust_with_measured_drift", both)
+    monkeypatch.setattr(strategy, "adjust_with_measured_drift", both)
     process(inputs, tmp_path / "out", load_config(tmp_path / "planes.toml"))
     unsettled, settled = moves[0], moves[default]
     assert unsettled > 1.0, moves
-    assert settled < 0.5 * unsettled and settled < 2.5 * stages._DESKEW_SETTLED, moves
+    assert settled < 0.5 * unsettled and settled < 2.5 * strategy._DESKEW_SETTLED, moves

@@ -167,7 +167,7 @@ def test_a_trajectory_link_far_off_its_model_is_named(caplog):
     """The trajectory's links are never rejected; one far beyond its model is named in a warning."""
     import logging
 
-    from kinreg.run.stages import _warn_trajectory_misfits
+    from kinreg.estimate.strategy import _warn_trajectory_misfits
     from kinreg.types import ObservationTest
 
     def test(k, statistic):
@@ -313,7 +313,7 @@ def test_the_coupling_settles_where_it_measures_itself():
     """Planes deskewed with a coupling lean towards it: the measured coupling lies between the
     used one and the run's own. The secant over two rounds lands on the fixed point; a fixed point
     that names a regime is that regime's (0.9: GNSS/INS-like, 1), a mixed one is kept."""
-    from kinreg.run.stages import _settled_coupling
+    from kinreg.estimate.strategy import _settled_coupling
 
     for own, expected in ((0.9, 1.0), (0.5, 0.5)):
         def measured(used, own=own):

@@ -61,7 +61,7 @@ def test_a_wrong_match_moves_a_station_by_the_separation_of_two_distinct_planes(
 def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_failed(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import kinreg.run.stages as stages
+    import kinreg.estimate.strategy as strategy
 
     out = tmp_path / "out"
     args = ["process", "-t", SAMPLE / "run_trajectory.txt", "-c", SAMPLE / "run_cloud.laz", "-o", out]
@@ -71,7 +71,7 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
     assert report["adjustment"]["trajectory_misfits"] == []  # the sample's network agrees with its trajectory
     # The final network's trajectory link 2-3 beyond its model by 1.5 mm: the model's misfit, a
     # warning in the report, not a wrong match.
-    monkeypatch.setattr(stages, "trajectory_misfits",
+    monkeypatch.setattr(strategy, "trajectory_misfits",
                         lambda tests, alpha: _moved(tests, (2, 3), [0.0015, 0, 0, 0, 0, 0]))
     code, _, err = run_cli([*args, "--resume"], capsys)
     assert code == 0, err
@@ -81,7 +81,8 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
     assert "the trajectory disagrees with the network between 1 pair(s)" in html and "1.5 mm" in html
     assert "by less than a wrong plane match would" in html
     # As a wrong match would leave it: 0.2 m, a wall's thickness.
-    monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: _moved(tests, (2, 3), [0, 0.2, 0, 0, 0, 0]))
+    monkeypatch.setattr(strategy, "trajectory_misfits",
+                        lambda tests, alpha: _moved(tests, (2, 3), [0, 0.2, 0, 0, 0, 0]))
     code, _, err = run_cli([*args, "--resume"], capsys)
     lines = message_lines(err)
     assert code == 1 and "Traceback" not in err
@@ -102,7 +103,7 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
 
 def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    import kinreg.run.stages as stages
+    import kinreg.estimate.strategy as strategy
     from kinreg.run.pipeline import ProcessInputs, process
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import SimulationConfig, simulate_run
@@ -115,7 +116,7 @@ def test_shorter_windows_the_trajectory_disagrees_with_are_not_kept(tmp_path: Pa
     once = process(inputs, tmp_path / "once", load_config(tmp_path / "once.toml"))
     assert once.n_stations == 4  # 6 s windows; 3 s windows give 8
     # a misfit in every network of more than four stations: the 3 s windows'
-    monkeypatch.setattr(stages, "trajectory_misfits", lambda tests, alpha: [
+    monkeypatch.setattr(strategy, "trajectory_misfits", lambda tests, alpha: [
         dataclasses.replace(t, residual=np.array([0.05, 0, 0, 0, 0, 0])) for t in tests
         if t.kind is ObservationKind.TRAJECTORY and t.j >= 4])
     kept = process(inputs, tmp_path / "kept", load_config(tmp_path / "again.toml"))
@@ -131,7 +132,7 @@ def test_a_network_that_settles_on_a_coupling_it_does_not_fit_best_is_exit_1(
     """The adjusted network is asked which coupling of the drift it fits best; where that is of
     another regime than the one its rounds settled on, the rounds start again from it, and where they
     settle apart from it again, the network is no result. Here the fit always names the other regime."""
-    import kinreg.run.stages as stages
+    import kinreg.estimate.strategy as strategy
 
     asked: list[float] = []
 
@@ -139,7 +140,7 @@ def test_a_network_that_settles_on_a_coupling_it_does_not_fit_best_is_exit_1(
         asked.append(rates.coupling)
         return 1.0 if rates.coupling < 0.5 else 0.0
 
-    monkeypatch.setattr(stages, "_coupling_by_fit", other_regime)
+    monkeypatch.setattr(strategy, "_coupling_by_fit", other_regime)
     out = tmp_path / "out"
     args = ["process", "-t", SAMPLE / "run_trajectory.txt", "-c", SAMPLE / "run_cloud.laz", "-o", out]
     code, _, err = run_cli(args, capsys)

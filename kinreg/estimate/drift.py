@@ -186,7 +186,7 @@ def window_maps(stations: Sequence[Station], result: BlockResult, rates: DriftRa
     inside its window out (:func:`deskewed_planes`, whose docstring says what it is), made from
     the correction of ``result`` over the whole run, or with ``neighbours`` over the station and
     that many either side (picklable and small: a map that goes to the worker that deskews the
-    scan's points, :func:`kinreg.run.stages.scan_planes`)."""
+    scan's points, :func:`kinreg.run.planes_stage.scan_planes`)."""
     maps: dict[int, WindowMap] = {}
     for run, ks in _timed_runs(stations).items():
         if len(ks) < 2:

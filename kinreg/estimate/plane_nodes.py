@@ -23,7 +23,7 @@ directions a plane leaves free (the shift in it, the turn about its normal) are 
 ``STATION`` observation of the node itself with only those directions (one metre, one radian): no
 other observation sees them, so it changes nothing else, has no redundancy and is never tested.
 
-The final adjustment only (:func:`kinreg.run.stages.adjust_with_measured_drift`): the links are
+The final adjustment only (:func:`kinreg.estimate.strategy.adjust_with_measured_drift`): the links are
 still what matching, relinking and their snooping work on, and a link the block rejected joins no
 planes. Scan planes are not snooped there (:mod:`kinreg.estimate.block`).
 """

@@ -16,8 +16,8 @@ One thread per local worker: N workers already keep N cores busy, so each worker
 (OpenBLAS, MKL, BLIS), OpenMP and numexpr to one thread (:data:`THREAD_VARIABLES`);
 otherwise every worker would start a pool per core and they would fight over the cores. The
 variables must be set before a worker loads those libraries, so they are set in the forkserver
-itself (its first preloaded module is :mod:`kinreg.run._worker_threads`, before the tasks' module
-:mod:`kinreg.run.stages` loads numpy; ``__main__`` is not preloaded), and again in each
+itself (its first preloaded module is :mod:`kinreg.run._worker_threads`, before the tasks' modules
+(:mod:`kinreg.run.planes_stage`, ...) load numpy; ``__main__`` is not preloaded), and again in each
 worker's initialiser, which also limits pools already loaded when ``threadpoolctl`` is installed.
 The calling process is left as it is: in-process runs (``workers=1``) keep every BLAS thread.
 Dask workers are configured by their cluster (Dask's nanny already sets these variables to 1).
@@ -180,10 +180,11 @@ def _mp_context() -> multiprocessing.context.BaseContext:
     context = multiprocessing.get_context("forkserver")
     # Effective when this starts the forkserver (the first pool of the process): workers are forked
     # from a server that has set the thread variables before it loaded numpy (not __main__, which
-    # may import it first). Then it imports the module of the workers' tasks (kinreg.run.stages:
-    # numpy, scipy, most of kinreg; about a CPU second) once, which every worker forked from it
-    # would otherwise import again when its first task is unpickled.
-    context.set_forkserver_preload(["kinreg.run._worker_threads", "kinreg.run.stages"])
+    # may import it first). Then it imports the modules of the workers' tasks (kinreg.run.planes_stage,
+    # link_stage, large_outputs: numpy, scipy, most of kinreg; about a CPU second) once, which every
+    # worker forked from it would otherwise import again when its first task is unpickled.
+    context.set_forkserver_preload(["kinreg.run._worker_threads", "kinreg.run.planes_stage", "kinreg.run.link_stage",
+                                    "kinreg.run.large_outputs"])
     return context
 
 
