@@ -47,9 +47,9 @@ def bench_links() -> dict:
     from kinreg.io.cloud import open_cloud
     from kinreg.io.trajectory import read_trajectory
     from kinreg.progress import NullProgress
-    from kinreg.run.spill import slice_quasi_static
     from kinreg.run.link_stage import link_stations
     from kinreg.run.planes_stage import detect_all_planes
+    from kinreg.run.spill import slice_quasi_static
 
     cfg = KinregConfig()
     data = REPO / "sample_data"
