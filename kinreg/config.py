@@ -29,7 +29,8 @@ else:  # pragma: no cover
 
 # Bump when a key is renamed or removed (adding keys with defaults does not need a bump).
 # 2: [matching] max_jump_m and [block] drift_per_axis removed (_REMOVED).
-CONFIG_SCHEMA_VERSION = 2
+# 3: [control] max_speed_mps, max_rotation_deg_per_s, smoothing_s removed (_REMOVED).
+CONFIG_SCHEMA_VERSION = 3
 
 # Keys that earlier versions knew, with the value that left their feature off. A file that still
 # sets one to that value (a config.toml an earlier run wrote) asks for nothing that is gone: it
@@ -40,6 +41,12 @@ _REMOVED: dict[tuple[str, str], tuple[Any, str]] = {
                                       "an experiment that stayed off; jumps are found in the trajectory ([jumps])"),
     ("block", "drift_per_axis"): (False, "the variance components of the drift per object axis were "
                                          "an experiment that stayed off"),
+    # Their defaults, as an earlier run's config.toml holds them: a stand-still is now found from
+    # where the unit stays, not from its speed (max_radius_m, max_rotation_deg, window_s).
+    ("control", "max_speed_mps"): (0.02, "stand-stills are found from the ball the unit stays in: max_radius_m"),
+    ("control", "max_rotation_deg_per_s"): (2.0, "stand-stills are found from the unit's turn over the "
+                                                 "window: max_rotation_deg"),
+    ("control", "smoothing_s"): (0.5, "stand-stills are judged over window_s"),
 }
 
 
@@ -246,11 +253,16 @@ class ControlConfig:
 
     # The point of the unit that touches the control point, in the platform (trajectory) frame [m].
     reference_point_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    # A stand-still: speed and rotation rate (over smoothing_s) below these for at least min_still_s.
+    # A stand-still: for at least min_still_s the reference point stays within max_radius_m of its
+    # mean and the unit turns less than max_rotation_deg from its middle orientation, over every
+    # window_s and over the whole stretch. A hand holding the unit on a point sways it by a few
+    # cm/s over 1-2 cm per axis (up to 1.7 cm from the mean, 3 cm with the last centimetres of
+    # the stop and the first of the start); slow walking (0.25 m/s) leaves a 4 cm ball within
+    # 0.3 s, a turn on the spot turns tens of degrees in a window.
     min_still_s: float = 2.0
-    max_speed_mps: float = 0.02
-    max_rotation_deg_per_s: float = 2.0
-    smoothing_s: float = 0.5
+    max_radius_m: float = 0.04
+    max_rotation_deg: float = 5.0
+    window_s: float = 1.0
     gate_m: float = 0.5  # a point is assigned to the nearest stand-still within this distance ...
     ambiguity_ratio: float = 3.0  # ... if the second nearest is this much farther, else it is ambiguous
     # With one or two control points and no other datum, the rotations they leave free are held
@@ -264,6 +276,10 @@ class ControlConfig:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.target_sigma_mm) and self.target_sigma_mm >= 0):
             raise ConfigError(f"[control] target_sigma_mm: expected a number >= 0, got {self.target_sigma_mm!r}")
+        for key in ("min_still_s", "max_radius_m", "max_rotation_deg", "window_s"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"[control] {key}: expected a number > 0, got {value!r}")
         r = self.reference_point_m
         if not isinstance(r, list | tuple) or len(r) != 3 or any(
                 isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) for v in r):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -275,3 +276,50 @@ def test_the_point_observation_jacobians_match_finite_differences():
             step[station, axis] = 1e-6
             moved, _ = _linearise(adjusted.compose(Pose.exp(step)), np.zeros((0, 6)), a, jacobians=False)
             assert np.allclose((moved[0] - e[0]) / 1e-6, J[0, slot, :, axis], atol=1e-5)
+
+
+def _held_trajectory(speed_mps: float, sway_m: float, sway_hz: float, yaw_deg_per_s: float = 0.0,
+                     seconds: float = 20.0) -> Trajectory:
+    """100 Hz: a walk along x at ``speed_mps`` (0: standing) with a hand's sway of ``sway_m``
+    amplitude per axis at about ``sway_hz`` (out of phase between the axes), turning about z at
+    ``yaw_deg_per_s``."""
+    t = np.arange(0.0, seconds, 0.01)
+    phase = 2.0 * np.pi * sway_hz * t
+    xyz = np.column_stack([speed_mps * t + sway_m * np.sin(phase), sway_m * np.sin(0.83 * phase + 1.0),
+                           1.3 + sway_m * np.sin(1.21 * phase + 2.0)])
+    yaw = np.radians(yaw_deg_per_s) * t + np.radians(0.5) * np.sin(phase)
+    q = rotvec_to_quat(np.column_stack([np.zeros_like(t), np.zeros_like(t), yaw]))
+    return Trajectory(t, Pose(q, xyz))
+
+
+@pytest.mark.parametrize(("sway_m", "sway_hz"), [(0.005, 1.2), (0.01, 0.6), (0.01, 0.3)])
+def test_a_hand_held_stand_still_is_found_and_slow_walking_or_turning_is_not(sway_m, sway_hz):
+    """Sway of up to 2 cm extent per axis at up to 5 cm/s is a stand-still; the same sway while
+    walking at 0.25 m/s, or turning on the spot at 30 deg/s, is not."""
+    standing = _held_trajectory(0.0, sway_m, sway_hz)
+    speed = np.linalg.norm(np.diff(standing.poses.t_xyz, axis=0), axis=1) / 0.01
+    assert np.ptp(standing.poses.t_xyz, axis=0).max() <= 0.0201 and np.median(speed) <= 0.051
+    found = find_stand_stills(standing, ControlConfig())
+    assert len(found) == 1 and found[0].duration_s > 19.0 and found[0].detected
+    assert found[0].scatter_mm < 1000.0 * math.sqrt(3.0) * sway_m
+    assert find_stand_stills(_held_trajectory(0.25, sway_m, sway_hz), ControlConfig()) == []
+    assert find_stand_stills(_held_trajectory(0.0, sway_m, sway_hz, yaw_deg_per_s=30.0), ControlConfig()) == []
+
+
+def test_the_simulators_stand_stills_sway_and_are_all_found():
+    """The simulated walk's stand-stills keep a hand's sway (a few cm/s, 1-2 cm per axis); every one
+    is found, with default settings, on the exported trajectory, at sway up to 5 cm/s median."""
+    from kinreg.simulation.run import config_from_dict, simulate_run
+
+    sample = Path(__file__).resolve().parents[1] / "sample_data"
+    base = config_from_dict(json.loads((sample / "run_meta.json").read_text())["config"])
+    for sway_m in (base.walk.stand_still_sway_m, 0.005):
+        walk = dataclasses.replace(base.walk, stand_stills=6, stand_still_sway_m=sway_m)
+        run = simulate_run(dataclasses.replace(base, seed=3, walk=walk))
+        t, xyz = run.truth.stamps_s, run.truth.poses.t_xyz
+        found = find_stand_stills(run.slam, ControlConfig())
+        for a, b in run.stand_stills():
+            held = (t >= a) & (t <= b)
+            speed = np.linalg.norm(np.diff(xyz[held], axis=0), axis=1) / np.diff(t[held])
+            assert 0.02 < np.median(speed) <= 0.06 and 0.008 < np.ptp(xyz[held], axis=0).max() <= 0.026
+            assert sum(s.t_start_s <= a + 0.3 and b - 0.3 <= s.t_end_s for s in found) == 1

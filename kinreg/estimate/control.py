@@ -1,9 +1,12 @@
 """Control and check points (METHOD.md section 2, item 10): surveyed points the unit stood on, and
 targets in static scans.
 
-A *stand-still* is a stretch of the trajectory whose speed and rotation rate stay below
-``[control] max_speed_mps`` and ``max_rotation_deg_per_s`` (over ``smoothing_s``) for at least
-``min_still_s``; the unit's ``reference_point_m`` (platform frame) touches the point there. A
+A *stand-still* is a stretch of the trajectory of at least ``[control] min_still_s`` where the
+unit's ``reference_point_m`` (platform frame) stays within ``max_radius_m`` of its mean and the
+unit within ``max_rotation_deg`` of its middle orientation, over every ``window_s`` of it and over
+the whole stretch; the reference point touches the control point there. It is judged from where
+the unit stays, not from its speed: a hand holding the unit sways it by a few cm/s (above a speed
+threshold that slow walking would pass) but within a centimetre or two. A
 point with ``t_start,t_end`` uses that interval; one without is assigned to the nearest
 stand-still within ``gate_m`` (one to one; ambiguous or unassigned points are named and left out).
 
@@ -35,6 +38,7 @@ together are the datum as control points are (three or more off one line fix eve
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Sequence
@@ -45,18 +49,24 @@ import numpy as np
 from kinreg.config import ControlConfig
 from kinreg.errors import InputError
 from kinreg.estimate.drift import DriftRates, window_bias_covariance
-from kinreg.geometry import FloatArray, Pose, quat_conjugate, quat_multiply, quat_to_rotvec, skew
+from kinreg.geometry import FloatArray, Pose, skew
 from kinreg.survey import ControlPoint, ControlPoints
 from kinreg.types import BlockResult, ObservationKind, RelativeObservation, ScanKind, Station, Trajectory
 
 log = logging.getLogger(__name__)
 
 
+# A stand-still is looked for on the trajectory thinned to about this many rows per second: a
+# hand's sway (1-3 Hz) keeps its extent there, and the window's test stays cheap at 200-500 Hz.
+_STILL_RATE_HZ = 20.0
+
+
 @dataclass(frozen=True, eq=False)
 class StandStill:
     """A stretch of one run's trajectory where the unit stood still: its interval and mean time
     [s], the reference point's mean position (3,) [m] in the trajectory's frame and its scatter
-    (3, 3) [m^2] over the stretch."""
+    (3, 3) [m^2] over the stretch; ``detected``: found in the trajectory (else the file gave the
+    times)."""
 
     run: int
     t_start_s: float
@@ -64,6 +74,16 @@ class StandStill:
     t_s: float
     xyz: FloatArray
     scatter_m2: FloatArray
+    detected: bool = False
+
+    @property
+    def duration_s(self) -> float:
+        return self.t_end_s - self.t_start_s
+
+    @property
+    def scatter_mm(self) -> float:
+        """The reference point's RMS distance [mm] from its mean over the stretch."""
+        return 1000.0 * math.sqrt(max(float(np.trace(self.scatter_m2)), 0.0))
 
 
 def stand_still_between(trajectory: Trajectory, t_start_s: float, t_end_s: float, reference_point_m: FloatArray,
@@ -78,28 +98,76 @@ def stand_still_between(trajectory: Trajectory, t_start_s: float, t_end_s: float
                       centred.T @ centred / len(points))
 
 
+def _held(points: FloatArray, quats: FloatArray, config: ControlConfig) -> bool:
+    """Whether the reference points (m, 3) lie within ``max_radius_m`` of their mean and the
+    orientations (m, 4) within ``max_rotation_deg`` of the middle one."""
+    radius = float(np.max(np.linalg.norm(points - points.mean(axis=0), axis=1)))
+    cos_half = float(np.min(np.abs(quats @ quats[len(quats) // 2])))
+    return radius <= config.max_radius_m and 2.0 * math.degrees(math.acos(min(cos_half, 1.0))) <= \
+        config.max_rotation_deg
+
+
 def find_stand_stills(trajectory: Trajectory, config: ControlConfig, run: int = 0) -> list[StandStill]:
-    """Every stretch of ``trajectory`` where the unit stood still (see the module's docstring)."""
-    t = trajectory.stamps_s
-    if len(t) < 3:
+    """Every stretch of ``trajectory`` where the unit stood still (see the module's docstring):
+    each row whose ``window_s`` around it is held (:func:`_held`) makes that window still; the
+    union of overlapping still windows, trimmed and held as a whole (:func:`_held_pieces`), is a
+    stand-still if it lasts ``min_still_s``."""
+    t_all = trajectory.stamps_s
+    if len(t_all) < 3:
         return []
-    reference = np.asarray(config.reference_point_m)
-    points = trajectory.poses.apply(np.broadcast_to(reference, (len(t), 3)))
-    # Rates over +-smoothing_s/2 around each row (the rows' own noise averages out).
-    lo = np.searchsorted(t, t - 0.5 * config.smoothing_s)
-    hi = np.minimum(np.searchsorted(t, t + 0.5 * config.smoothing_s, side="right") - 1, len(t) - 1)
-    span = np.maximum(t[hi] - t[lo], 1e-9)
-    speed = np.linalg.norm(points[hi] - points[lo], axis=1) / span
-    q_rel = quat_multiply(quat_conjugate(trajectory.poses.quat_wxyz[lo]), trajectory.poses.quat_wxyz[hi])
-    turn = np.degrees(np.linalg.norm(quat_to_rotvec(q_rel), axis=1)) / span
-    still = (speed < config.max_speed_mps) & (turn < config.max_rotation_deg_per_s) & (hi > lo)
+    stride = max(1, int(len(t_all) / max((t_all[-1] - t_all[0]) * _STILL_RATE_HZ, 1.0)))
+    t, quats = t_all[::stride], trajectory.poses.quat_wxyz[::stride]
+    points = trajectory.poses[::stride].apply(np.broadcast_to(np.asarray(config.reference_point_m), (len(t), 3)))
+    half = 0.5 * config.window_s
+    lo = np.searchsorted(t, t - half)
+    hi = np.searchsorted(t, t + half, side="right") - 1
+    count = (hi - lo + 1)[:, None]
+    sums = np.vstack([np.zeros(3), np.cumsum(points, axis=0)])
+    mean = (sums[hi + 1] - sums[lo]) / count
+    radius, cos_half = np.zeros(len(t)), np.ones(len(t))
+    rows = np.arange(len(t))
+    for k in range(int(np.max(rows - lo)), -int(np.max(hi - rows)) - 1, -1):
+        j = np.clip(rows - k, 0, len(t) - 1)
+        inside = (j >= lo) & (j <= hi)
+        radius = np.where(inside, np.maximum(radius, np.linalg.norm(points[j] - mean, axis=1)), radius)
+        cos_half = np.where(inside, np.minimum(cos_half, np.abs(np.sum(quats[j] * quats, axis=1))), cos_half)
+    turn_deg = 2.0 * np.degrees(np.arccos(np.minimum(cos_half, 1.0)))
+    # Windows cut short by the trajectory's ends are not judged.
+    still = ((radius <= config.max_radius_m) & (turn_deg <= config.max_rotation_deg)
+             & (t[hi] - t[lo] >= 0.9 * config.window_s))
     edges = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
     found = []
-    for a, b in zip(starts, ends, strict=True):
-        if t[b] - t[a] >= config.min_still_s:
-            found.append(stand_still_between(trajectory, float(t[a]), float(t[b]), reference, run))
+    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1, strict=True):
+        for first, last in _held_pieces(points[lo[a]:hi[b] + 1], quats[lo[a]:hi[b] + 1], config):
+            t0, t1 = float(t[lo[a] + first]), float(t[lo[a] + last])
+            if t1 - t0 >= config.min_still_s:
+                still_there = stand_still_between(trajectory, t0, t1, np.asarray(config.reference_point_m), run)
+                found.append(dataclasses.replace(still_there, detected=True))
     return found
+
+
+def _held_pieces(points: FloatArray, quats: FloatArray, config: ControlConfig) -> list[tuple[int, int]]:
+    """The held pieces (first, last row) of a stretch whose windows are still: the stretch without
+    its ends outside the ball about its median position (or turned from its middle orientation):
+    the last centimetres of the stop and the first of the start, which the still windows at its
+    ends reach into. Where the rest is not held as a whole (the unit crept), its longest held
+    pieces from the start on."""
+    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    turn_deg = 2.0 * np.degrees(np.arccos(np.minimum(np.abs(quats @ quats[len(quats) // 2]), 1.0)))
+    inside = np.flatnonzero((distance <= config.max_radius_m) & (turn_deg <= config.max_rotation_deg))
+    if len(inside) < 2:
+        return []
+    first, last = int(inside[0]), int(inside[-1])
+    if _held(points[first:last + 1], quats[first:last + 1], config):
+        return [(first, last)]
+    pieces = []
+    while first < last:
+        end = first + 1
+        while end < last and _held(points[first:end + 2], quats[first:end + 2], config):
+            end += 1
+        pieces.append((first, end))
+        first = end + 1
+    return pieces
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,7 +253,8 @@ def assign_points(points: ControlPoints, trajectories: Sequence[Trajectory], con
             chosen[n] = stand_still_between(trajectories[run], p.t_start_s, p.t_end_s, reference, run)
             continue
         if not detected:
-            problems.append(f"{what} point {p.name}: no stand-still found in the trajectory (give t_start,t_end)")
+            problems.append(f"{what} point {p.name}: no stand-still found in the trajectory (give t_start,t_end, "
+                            "or widen [control] max_radius_m or max_rotation_deg)")
             continue
         d = np.array([np.linalg.norm(s.xyz - p.xyz) for s in detected])
         order = np.argsort(d)

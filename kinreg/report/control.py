@@ -39,9 +39,13 @@ LOA_BANDS_MM = (("LOA50", 1.0), ("LOA40", 5.0), ("LOA30", 15.0), ("LOA20", 50.0)
 LOA_SOURCE = "USIBD Level of Accuracy (LOA) Specification Guide v3.0, 2019"
 
 # "kind": "stand-still" (the unit stood on the point) or "static target" (a target in the static
-# scan named in "scan"); added at the end so that readers of the earlier columns keep working.
+# scan named in "scan"); "tied": how a stand-still point was tied ("times given" in the file or
+# "stand-still found" in the trajectory), "still_s" its stand-still's duration and "scatter_mm"
+# the reference point's RMS scatter over it. Each added at the end so that readers of the
+# earlier columns keep working.
 CONTROL_POINTS_HEADER = ("name", "role", "t", "x", "y", "z", "sigma_mm", "dx_mm", "dy_mm", "dz_mm", "horizontal_mm",
-                         "vertical_mm", "d3d_mm", "normalised", "decision", "input_d3d_mm", "kind", "scan")
+                         "vertical_mm", "d3d_mm", "normalised", "decision", "input_d3d_mm", "kind", "scan", "tied",
+                         "still_s", "scatter_mm")
 
 
 def loa_class(two_sigma_mm: float) -> str:
@@ -80,6 +84,17 @@ def target_positions(stations: Sequence[Station], poses: Pose | None, assignment
         T = stations[k].T_obj_scan if poses is None else poses[k]
         out.append(T.apply(np.asarray(target.scan_xyz)[None, :])[0])
     return np.array(out).reshape(-1, 3)
+
+
+def _tied(assignment: Assignment) -> list[dict[str, Any]]:
+    """How each point was tied, as :class:`_Points` orders them: a stand-still point by the times
+    the file gave or by the stand-still found in the trajectory, with its interval, duration and
+    scatter; a target in a static scan by its scan."""
+    rows: list[dict[str, Any]] = [
+        {"tied": "stand-still found" if s.detected else "times given", "still_start": s.t_start_s,
+         "still_end": s.t_end_s, "still_s": s.duration_s, "scatter_mm": s.scatter_mm}
+        for s in assignment.stand_stills]
+    return rows + [{"tied": "static scan"} for _ in assignment.targets]
 
 
 @dataclass(frozen=True, eq=False)
@@ -143,7 +158,8 @@ def control_section(network: Network, result: BlockResult, rates: DriftRates, as
     corrected = _positions(assignment, network.stations, result, trajectories, corrections, reference_point_m)
     original = _positions(assignment, network.stations, None, trajectories, None, reference_point_m)
     rows = _differences(points.names, corrected - points.xyz)
-    for n, row in enumerate(rows):
+    for n, (row, tied) in enumerate(zip(rows, _tied(assignment), strict=True)):
+        row.update(tied)
         row.update({"role": "control", "kind": points.kind[n], "scan": points.scan[n],
                     "x": float(points.xyz[n, 0]), "y": float(points.xyz[n, 1]), "z": float(points.xyz[n, 2]),
                     "sigma_mm": float(points.sigma_m[n] * 1000.0),
@@ -181,7 +197,8 @@ def check_section(assignment: Assignment, trajectories: Sequence[Trajectory], co
                                                       reference_point_m) - points.xyz)
     original = _differences(points.names, _positions(assignment, stations, None, trajectories, None,
                                                      reference_point_m) - points.xyz)
-    for n, (row, before) in enumerate(zip(corrected, original, strict=True)):
+    for n, (row, before, tied) in enumerate(zip(corrected, original, _tied(assignment), strict=True)):
+        row.update(tied)
         row.update({"role": "check", "kind": points.kind[n], "scan": points.scan[n], "t": float(points.t_s[n]),
                     "x": float(points.xyz[n, 0]), "y": float(points.xyz[n, 1]), "z": float(points.xyz[n, 2]),
                     "sigma_mm": float(points.sigma_m[n] * 1000.0), "normalised": math.nan, "decision": "",
@@ -220,11 +237,16 @@ def control_html(report: dict[str, Any]) -> str:
     from kinreg.report.text import _esc, _fmt, _tag
 
     parts = []
-    columns = ("name", "observed", "dx_mm", "dy_mm", "dz_mm", "horizontal_mm", "vertical_mm", "d3d_mm")
+    columns = ("name", "observed", "dx_mm", "dy_mm", "dz_mm", "horizontal_mm", "vertical_mm", "d3d_mm", "tied")
 
     def cell(r: dict[str, Any], c: str) -> str:
         if c == "observed":  # a stand-still, or a target in the static scan named
             return _esc(str(r.get("kind", "")) + (f" {r['scan']}" if r.get("scan") else ""))
+        if c == "tied":  # how: the file's times or the stand-still found, its duration and scatter
+            if "still_s" not in r:
+                return _esc(str(r.get("tied", "")))
+            return _esc(f"{r.get('tied', '')}: {_fmt(r.get('still_start'), 2)}-{_fmt(r.get('still_end'), 2)} s "
+                        f"({_fmt(r.get('still_s'), 1)} s, scatter {_fmt(r.get('scatter_mm'), 1)} mm)")
         return _esc(str(r.get(c, ""))) if c in ("name", "decision") else _fmt(r.get(c), 2)
 
     def table(rows: Sequence[dict[str, Any]], extra: Sequence[str]) -> str:

@@ -186,11 +186,14 @@ class SimulatedRun:
                        noise: bool = True) -> tuple[FloatArray, FloatArray]:
         """Per stand-still: its (start, end) times (k, 2) and the position (k, 3) of the platform
         point ``reference_point_m`` (platform frame, default its origin) there, in the object
-        frame: the true one, plus (``noise``) a survey error of ``config.control_sigma_mm`` per
+        frame: the true one (its mean over the stand-still: the hand sways the unit about the
+        point it holds it on), plus (``noise``) a survey error of ``config.control_sigma_mm`` per
         axis (its own random stream: the walk, drift and cloud do not change with it)."""
         intervals = self.stand_stills()
         r = np.zeros(3) if reference_point_m is None else np.asarray(reference_point_m, dtype=np.float64)
-        xyz = self.truth.pose_at(intervals.mean(axis=1)).apply(np.broadcast_to(r, (len(intervals), 3)))
+        stamps = self.truth.stamps_s
+        held = [self.truth.poses[(stamps >= a) & (stamps <= b)] for a, b in intervals]
+        xyz = np.array([poses.apply(np.broadcast_to(r, (len(poses), 3))).mean(axis=0) for poses in held]).reshape(-1, 3)
         if noise:
             xyz = xyz + 1e-3 * self.config.control_sigma_mm * _rng(self.config.seed, 5).standard_normal(xyz.shape)
         return intervals, xyz

@@ -45,12 +45,18 @@ class WalkConfig:
     carry_roll_deg: float = 10.0  # slow rotation about the carrying (x) axis
     carry_period_s: float = 23.0
     jitter_deg: float = 1.5  # smooth random hand jitter (1 sigma)
-    # Stand-stills on control points: the unit is held still (no motion at all) this many times,
-    # spread evenly in time over the walk, each for stand_still_s seconds, with smooth stops and
-    # starts of stand_still_ramp_s. 0 keeps the walk exactly as without them.
+    # Stand-stills on control points: the walk stops this many times, spread evenly in time over
+    # the walk, each for stand_still_s seconds, with smooth stops and starts of stand_still_ramp_s.
+    # 0 keeps the walk exactly as without them. A hand holds the unit there: it sways about the
+    # still pose by stand_still_sway_m per axis and stand_still_sway_deg per axis (1 sigma, smooth
+    # noise of Gaussian correlation time stand_still_sway_corr_s), which makes about 4 cm/s median
+    # speed and 1-1.5 cm extent per axis over 4 s, as measured on a handheld unit held on a point.
     stand_stills: int = 0
     stand_still_s: float = 4.0
     stand_still_ramp_s: float = 1.0
+    stand_still_sway_m: float = 0.0035
+    stand_still_sway_deg: float = 0.3
+    stand_still_sway_corr_s: float = 0.1
 
 
 def _rot_z(a: FloatArray) -> FloatArray:
@@ -159,7 +165,30 @@ def make_walk(scene: Scene, config: WalkConfig, duration_s: float, t0_s: float,
     tw = _walk_time(tr, config, duration_s)
     moving = _make_moving_walk(scene, config, float(np.ceil(tw[-1] * config.rate_hz) / config.rate_hz), 0.0, rng)
     poses = interpolate_poses(moving.stamps_s, moving.poses, np.minimum(tw, moving.stamps_s[-1]))
+    poses = _held_by_hand(poses, tr, config, duration_s, rng)
     return Trajectory(t0_s + tr, Pose(make_quat_continuous(poses.quat_wxyz), poses.t_xyz), source="simulated truth")
+
+
+def _held_by_hand(poses: Pose, tr: FloatArray, config: WalkConfig, duration_s: float,
+                  rng: np.random.Generator) -> Pose:
+    """``poses`` at the relative times ``tr`` with a hand's sway over the stand-stills: smooth
+    noise in position (object frame) and attitude (platform frame, a right perturbation), faded
+    in over the ramp before each stand-still and out over the ramp after it (drawn after the walk,
+    so the walk itself does not change with it)."""
+    from kinreg.geometry import rotvec_to_quat
+
+    n = len(tr)
+    envelope = np.zeros(n)
+    ramp = config.stand_still_ramp_s
+    for a, b in stand_still_intervals(config, duration_s, 0.0):
+        rise = np.clip((tr - (a - ramp)) / ramp, 0.0, 1.0)
+        fall = np.clip(((b + ramp) - tr) / ramp, 0.0, 1.0)
+        envelope = np.maximum(envelope, (0.5 - 0.5 * np.cos(np.pi * rise)) * (0.5 - 0.5 * np.cos(np.pi * fall)))
+    noise = np.column_stack([_smooth_noise(rng, n, config.rate_hz, config.stand_still_sway_corr_s)
+                             for _ in range(6)])
+    dt = config.stand_still_sway_m * noise[:, :3] * envelope[:, None]
+    dphi = np.radians(config.stand_still_sway_deg) * noise[:, 3:] * envelope[:, None]
+    return Pose(poses.quat_wxyz, poses.t_xyz + dt).compose(Pose(rotvec_to_quat(dphi), np.zeros((n, 3))))
 
 
 def _make_moving_walk(scene: Scene, config: WalkConfig, duration_s: float, t0_s: float,
