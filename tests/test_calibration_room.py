@@ -449,3 +449,49 @@ def test_cli_far_starting_values_never_exit_0_with_a_wrong_result(tmp_path, caps
         assert code == 1 and err.count("\n") == 1 and err.startswith(f"kinreg: error: {cloud}: ")
     if lever_off_m >= 0.5:
         assert code == 1  # half a metre off: no plate can be found
+
+
+def test_a_sigma0_near_one_is_no_failure_and_scales_the_sigmas(room_run):
+    """A sigma0 a few per cent off 1, refused by the chi-square bounds at this redundancy, is a
+    good calibration: not refused, its sigmas scaled by sigma0, and the report says so."""
+    from kinreg.calibration.report import calibration_report, global_test_note
+
+    sim, start = room_run
+    loose = CalibrationConfig(scanner=dataclasses.replace(CalibrationConfig().scanner,
+                                                          sigma_d_m=CalibrationConfig().scanner.sigma_d_m * 0.96))
+    rob = calibrate_robust(sim.points_s, sim.stamps_s, sim.trajectory, sim.planes, start, loose)
+    res = rob.result
+    assert not res.global_test.passed and res.global_test.scaled and 1.0 < res.sigma0 < 1.1
+    assert calibration_problems(rob, sim.planes, loose) == []
+    plain = calibrate_robust(sim.points_s, sim.stamps_s, sim.trajectory, sim.planes, start,
+                             dataclasses.replace(loose, sigma0_band=(1.0, 1.0)))
+    np.testing.assert_allclose(res.sigmas, plain.result.sigmas * res.sigma0, rtol=1e-6)
+    assert any("global test failed" in p and "outside 1-1" in p for p in calibration_problems(
+        plain, sim.planes, dataclasses.replace(loose, sigma0_band=(1.0, 1.0))))
+    report = calibration_report(res, loose, robust=rob, problems=[])
+    assert report["sigmas_scaled_by_sigma0"] and report["accepted"]
+    assert "the sigmas are scaled by sigma0" in global_test_note(res)
+
+
+def test_a_wrong_start_that_converges_wrong_is_refused_and_the_message_says_why():
+    """Starting values 10 cm and 3 deg off, the one-gate assignment (5 cm): the estimate converges
+    on the room's points; refused, naming what the residuals show, not the a-priori sigmas."""
+    cfg, start = room_scenario(0, n_profiles=20, start_lever_m=0.1, start_angle_deg=3.0)
+    sim = simulate_calibration(cfg, seed=0)
+    idx = assign_points_to_planes(sim.points_s, sim.stamps_s, sim.trajectory, sim.planes, start, 0.05)
+    res = estimate_calibration(sim.points_s, sim.stamps_s, idx, sim.trajectory, sim.planes, start)
+    assert np.max(np.abs(res.calibration.as_vector() - sim.truth.as_vector()) / res.sigmas) > 10
+    misfit, upper = start_misfit(sim.points_s, sim.stamps_s, idx, sim.trajectory, sim.planes, start,
+                                 CalibrationConfig())
+    problems = calibration_problems(RobustCalibration(res, idx, (), misfit, upper, start), sim.planes)
+    failed = [p for p in problems if p.startswith("global test failed")]
+    assert failed and ("show structure" in failed[0] or "long tails" in failed[0]), problems
+    assert "no structure" not in failed[0]
+
+
+def test_a_wrong_stochastic_model_alone_is_named_as_such(room_run):
+    sim, start = room_run
+    cfg = CalibrationConfig(scanner=ScannerSigmas(sigma_d_m=0.15e-3))
+    rob = calibrate_robust(sim.points_s, sim.stamps_s, sim.trajectory, sim.planes, start, cfg)
+    problems = calibration_problems(rob, sim.planes, cfg)
+    assert any("no structure: the a-priori sigmas are off" in p for p in problems), problems

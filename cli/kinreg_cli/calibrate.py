@@ -127,6 +127,7 @@ def calibrate(
         check_time_overlap,
         start_misfit,
     )
+    from kinreg.calibration.report import global_test_note
     from kinreg.errors import CalibrationRejectedError
     from kinreg.io.reference_planes import read_reference_planes
     from kinreg.io.trajectory import read_trajectory
@@ -184,9 +185,7 @@ def calibrate(
     for name, p in report["parameters"].items():
         table.add_row(name, f"{p['value']:.4f} {p['unit']}", f"{p['sigma']:.4f} {p['sigma_unit']}")
     console.print(table)
-    gt = result.global_test
-    console.print(f"sigma0 {result.sigma0:.3f}, global test {'passed' if gt.passed else 'failed'}; "
-                  f"report in {out}")
+    console.print(f"{global_test_note(result)}; report in {out}")
     if problems:
         _warn(f"{cloud}: calibration REJECTED but kept (--accept-rejected): " + "; ".join(problems))
 

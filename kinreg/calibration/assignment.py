@@ -385,14 +385,60 @@ def calibration_problems(robust: RobustCalibration, planes: ReferencePlanes,
     if not res.converged:
         out.append(f"the adjustment did not converge in {res.iterations} iterations")
     gt = res.global_test
-    if not gt.passed:
+    structure = residual_structure(res)
+    if not gt.passed and not gt.scaled:
+        cause = ("; ".join(structure) if structure else
+                 "the residuals show no structure: the a-priori sigmas are off by this factor (the estimate may "
+                 "hold, its sigmas do not; give the instrument's sigmas)")
         out.append(f"global test failed: sigma0 {res.sigma0:.3f} (statistic {gt.statistic:.1f} outside "
-                   f"[{gt.lower:.1f}, {gt.upper:.1f}])")
+                   f"[{gt.lower:.1f}, {gt.upper:.1f}], and outside {config.sigma0_band[0]:g}-"
+                   f"{config.sigma0_band[1]:g}): {cause}")
+    elif structure:
+        out.append(f"sigma0 {res.sigma0:.3f} but the residuals show structure: " + "; ".join(structure))
     moved = np.abs(res.calibration.as_vector() - robust.approximate.as_vector()) / res.sigmas
     far = math.isfinite(robust.start_misfit) and robust.start_misfit > robust.start_misfit_upper
     if far and np.all(moved < 1.0):
         out.append(f"the estimate stayed within one sigma of the starting values although these do not "
                    f"fit the data (sigma0 {robust.start_misfit:.1f} at the start)")
+    return out
+
+
+# Residuals "show structure" where a plate's mean residual is this share of its RMS (a plate
+# off, or points of another surface on it: a clean run's means are 1-5 % of the RMS) or where
+# the plates' RMS over their a-priori sigmas differ by this factor (0.95-1.05 on clean runs).
+_MEAN_SHARE_OF_RMS = 0.3
+_NORMALISED_RMS_RATIO = 1.5
+# ... or where the standardised residuals' RMS exceeds their robust spread (1.4826 MAD) by this
+# factor: points of other surfaces on the plates make long tails (1.00-1.02 on clean runs, where
+# the residuals are as Gaussian as the scanner's noise; a stochastic model off by a factor alone
+# scales both alike).
+_RMS_OVER_ROBUST_SPREAD = 1.3
+
+
+def residual_structure(result: CalibrationResult) -> list[str]:
+    """What in the residuals says the model is wrong where it matters, one clause each (empty:
+    nothing): a plate whose residuals are off its plane on the mean, and plates that fit much
+    worse than others."""
+    stats = [s for s in result.plane_stats if s.n_points > 0 and math.isfinite(s.rms_mm) and s.rms_mm > 0]
+    out = []
+    off = [s for s in stats if abs(s.mean_mm) > _MEAN_SHARE_OF_RMS * s.rms_mm]
+    if off:
+        out.append("the residuals show structure: mean residual on plate(s) " + ", ".join(
+            f"{s.name} {s.mean_mm:+.3f} mm (RMS {s.rms_mm:.3f})" for s in off[:4]) + (", ..." if len(off) > 4 else ""))
+    if result.residual_sigma_m is not None:
+        u = result.residuals_m / result.residual_sigma_m
+        u = u[np.isfinite(u)]
+        spread = 1.4826 * float(np.median(np.abs(u))) if len(u) else 0.0
+        rms = float(np.sqrt(np.mean(u**2))) if len(u) else 0.0
+        if spread > 0 and rms > _RMS_OVER_ROBUST_SPREAD * spread:
+            out.append(f"the residuals have long tails (RMS {rms:.2f} sigma, robust spread {spread:.2f} sigma: points "
+                       "of other surfaces on the plates, or plates off)")
+    if len(stats) > 1:
+        worst = max(stats, key=lambda s: s.normalized_rms)
+        best = min(stats, key=lambda s: s.normalized_rms)
+        if worst.normalized_rms > _NORMALISED_RMS_RATIO * best.normalized_rms:
+            out.append(f"the plates fit unequally: RMS/sigma {worst.normalized_rms:.2f} on {worst.name}, "
+                       f"{best.normalized_rms:.2f} on {best.name}")
     return out
 
 

@@ -68,8 +68,10 @@ def calibration_report(result: CalibrationResult, config: CalibrationConfig | No
         "sigma0": result.sigma0,
         "redundancy": result.redundancy,
         "global_test": {"statistic": gt.statistic, "lower": gt.lower, "upper": gt.upper,
-                        "alpha": gt.alpha, "passed": gt.passed},
-        "sigmas_scaled_by_sigma0": bool(config.scale_by_sigma0) if config else False,
+                        "alpha": gt.alpha, "passed": gt.passed, "scaled": gt.scaled,
+                        "sigma0_band": list(config.sigma0_band) if config else None,
+                        "note": global_test_note(result)},
+        "sigmas_scaled_by_sigma0": bool(config.scale_by_sigma0 if config else False) or gt.scaled,
         "n_points": result.n_points,
         "n_epochs": result.n_epochs,
         "iterations": result.iterations,
@@ -87,6 +89,21 @@ def calibration_report(result: CalibrationResult, config: CalibrationConfig | No
             "planes_without_extent": list(robust.unbounded_planes),
         },
     }
+
+
+def global_test_note(result: CalibrationResult) -> str:
+    """One sentence on the global test: passed, refused, or refused by the chi-square bounds with
+    sigma0 in the band that is no failure (the sigmas scaled by sigma0)."""
+    gt = result.global_test
+    bounds = f"{gt.statistic:.1f} in [{gt.lower:.1f}, {gt.upper:.1f}] at redundancy {result.redundancy}"
+    if gt.passed:
+        return f"global test passed: {bounds} (alpha {gt.alpha:g})"
+    if gt.scaled:
+        return (f"sigma0 {result.sigma0:.3f}: outside the chi-square bounds ({bounds.replace(' in ', ' not in ')}, "
+                f"alpha {gt.alpha:g}) but an a-priori model {abs(result.sigma0 - 1.0) * 100:.1f} % off, no failed "
+                "calibration: the sigmas are scaled by sigma0")
+    return (f"global test REJECTED: sigma0 {result.sigma0:.3f}, {bounds.replace(' in ', ' not in ')} "
+            f"(alpha {gt.alpha:g})")
 
 
 def calibration_text(result: CalibrationResult, problems: list[str] | None = None) -> str:
@@ -107,10 +124,7 @@ def calibration_text(result: CalibrationResult, problems: list[str] | None = Non
     lines.append(header)
     for name, row in zip(PARAMETER_NAMES, result.correlation, strict=True):
         lines.append(f"  {name:6s}" + " ".join(f"{c:7.3f}" for c in row))
-    gt = result.global_test
-    lines += ["", f"sigma0 = {result.sigma0:.4f} (redundancy {result.redundancy}); global test "
-              f"{'passed' if gt.passed else 'REJECTED'}: {gt.statistic:.1f} in [{gt.lower:.1f}, "
-              f"{gt.upper:.1f}] (alpha {gt.alpha})",
+    lines += ["", f"sigma0 = {result.sigma0:.4f} (redundancy {result.redundancy}); {global_test_note(result)}",
               f"{result.n_points} points, {result.n_epochs} tracker epochs, {result.iterations} "
               f"iterations{'' if result.converged else ' (NOT converged)'}", "",
               "residuals per plane (orthogonal distance):",
