@@ -20,7 +20,7 @@ from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticCon
 from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import StationPlanes, candidate_pairs, match_planes
-from kinreg.estimate.pairwise import PairInput, adjust_pairs
+from kinreg.estimate.pairwise import LinkModel, PairInput, adjust_pairs
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.types import (
@@ -71,7 +71,7 @@ def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
 def link_pairs(
     pairs: Sequence[tuple[int, int]], stations: Mapping[int, Station], planes: Mapping[int, tuple[Plane, ...]],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    sigmas: Mapping[int, np.ndarray] | None = None,
+    sigmas: Mapping[int, np.ndarray] | None = None, model: LinkModel | None = None,
 ) -> list[Link | None]:
     """Match and adjust candidate pairs ``(i, j)`` of ``stations``; per pair its link, ``None``
     where too few planes match. Each station's planes are formed for matching once
@@ -80,12 +80,23 @@ def link_pairs(
     solve). The planes' covariances are expected to carry the drift inside their windows already
     (:func:`with_window_deformation`, as :func:`link_stations` passes them). A pair's prior is
     the stations' relative pose with ``hypot(sigmas[i], sigmas[j])`` (6,), by default the drift's
-    over their time difference."""
-    matchable = {k: StationPlanes(p) for k, p in planes.items()}
-    inputs = [_pair_input(i, j, stations[i], stations[j], matchable[i], matchable[j], matching, pairwise, static,
-                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
-    links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise))
+    over their time difference. ``model``: the observations' model the links measured
+    (:func:`~kinreg.estimate.pairwise.estimate_link_model`), where not the a-priori one."""
+    inputs = pair_inputs(pairs, stations, planes, matching, pairwise, static, sigmas)
+    links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise, model))
     return [None if p is None else next(links) for p in inputs]
+
+
+def pair_inputs(
+    pairs: Sequence[tuple[int, int]], stations: Mapping[int, Station], planes: Mapping[int, tuple[Plane, ...]],
+    matching: MatchingConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
+    sigmas: Mapping[int, np.ndarray] | None = None,
+) -> list[PairInput | None]:
+    """The matches and prior of each pair of :func:`link_pairs`, ready to adjust; ``None`` where
+    too few planes match."""
+    matchable = {k: StationPlanes(p) for k, p in planes.items()}
+    return [_pair_input(i, j, stations[i], stations[j], matchable[i], matchable[j], matching, pairwise, static,
+                        None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
 
 
 def _pair_input(

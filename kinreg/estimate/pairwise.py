@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -242,13 +242,17 @@ class PairInput:
 class _PairState:
     """A pair between rounds of data snooping: its prior and the matches still in."""
 
-    def __init__(self, pair: PairInput, drift: DriftConfig, config: PairwiseConfig):
+    def __init__(self, pair: PairInput, drift: DriftConfig, config: PairwiseConfig, model: LinkModel | None = None):
         self.pair = pair
         self.sigma_prior = drift_sigmas(abs(pair.dt_s), drift) if pair.sigma_prior is None else pair.sigma_prior
+        planes_i, planes_j = pair.planes_i, pair.planes_j
+        if model is not None and model.estimated:
+            self.sigma_prior = self.sigma_prior * np.sqrt(model.prior_variance_factor)
+            planes_i, planes_j = model.apply(planes_i), model.apply(planes_j)
         self.p_prior = 1.0 / self.sigma_prior**2
         self.R_prior, self.t_prior = pair.T_prior.rotation_matrix, pair.T_prior.t_xyz
-        self.by_id_i = {p.plane_id: p for p in pair.planes_i}
-        self.by_id_j = {p.plane_id: p for p in pair.planes_j}
+        self.by_id_i = {p.plane_id: p for p in planes_i}
+        self.by_id_j = {p.plane_id: p for p in planes_j}
         # A plane pair stated twice would make two identical conditions (a singular Q_ww).
         self.active = list({(m.plane_i, m.plane_j): m for m in pair.matches}.values())
         self.rejected: list[PlaneMatch] = []
@@ -262,11 +266,14 @@ class _PairState:
                     tuple(self.rejected), 0.0, p.dt_s)
 
 
-def adjust_pairs(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig) -> list[Link]:
+def adjust_pairs(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig,
+                 model: LinkModel | None = None) -> list[Link]:
     """:func:`adjust_pair` for many pairs at once, in their order: pairs with the same number of
     matches are solved together on stacked arrays, each with its own iterations and data
-    snooping, so each link is the one :func:`adjust_pair` gives (up to rounding)."""
-    states = [_PairState(pair, drift, config) for pair in pairs]
+    snooping, so each link is the one :func:`adjust_pair` gives (up to rounding). ``model``: the
+    observations' model the links measured (:func:`estimate_link_model`), where it is not the
+    a-priori one."""
+    states = [_PairState(pair, drift, config, model) for pair in pairs]
     links: list[Link | None] = [None if s.active else s.prior_only() for s in states]
     critical = chi2_quantile(1.0 - config.alpha, 3)
     pending = [k for k, s in enumerate(states) if s.active]
@@ -364,3 +371,166 @@ def adjust_pair(
     """
     return adjust_pairs([PairInput(scan_i, scan_j, planes_i, planes_j, T_prior, dt_s, matches, sigma_prior)],
                         drift, config)[0]
+
+
+# The a-priori model of the planes and the trajectory is kept where the links' pooled sigma0 is
+# within this factor of 1: no model of a real scanner is right to a few per cent, and a model
+# that fits is not re-estimated (the estimate would only add its own noise).
+MODEL_TOLERANCE = 1.1
+# A link whose own variance factor exceeds this multiple of the links' median is left out of the
+# pooled estimates (a wrong plane match, not the model: 3 times the median sigma0).
+_OUTLYING_LINK = 9.0
+_MODEL_ITERATIONS = 30
+
+
+@dataclass(frozen=True)
+class LinkModel:
+    """What the links say of their observations' model, where the a-priori one does not fit them.
+
+    A plane fitted to a real surface errs by the surface's own departure from a plane (floors by
+    millimetres over metres, walls that bow, the quasi-static scan's own blur), which does not
+    shrink with the number of points: two scans see different parts of the surface and their
+    planes differ by it. It enters every plane as an additive covariance, a tilt
+    ``departure_tilt_rad`` about each tangent and an offset ``departure_offset_m`` at the plane's
+    centroid. The trajectory's relative poses (the pairs' priors) may err by more than the drift
+    model says (an odometry-grade trajectory errs by centimetres within seconds): their variances
+    are multiplied by ``prior_variance_factor`` (never below 1). All three are variance components
+    estimated over all links at once (:func:`estimate_link_model`). ``sigma0_a_priori`` is the
+    links' pooled sigma0 under the a-priori model; ``n_links`` the links pooled.
+    """
+
+    departure_tilt_rad: float = 0.0
+    departure_offset_m: float = 0.0
+    prior_variance_factor: float = 1.0
+    sigma0_a_priori: float = float("nan")
+    sigma0_estimated: float = float("nan")
+    n_links: int = 0
+
+    @property
+    def estimated(self) -> bool:
+        """Whether the model differs from the a-priori one."""
+        return bool(self.departure_tilt_rad > 0.0 or self.departure_offset_m > 0.0 or self.prior_variance_factor > 1.0)
+
+    def departure_cov(self, plane: Plane) -> FloatArray:
+        """The departure's covariance of ``plane``'s (tilt u, tilt v, d): the offset at the centroid
+        reaches ``d`` through the centroid's lever arm, ``d = e_c + (u.c) a + (v.c) b``."""
+        return _departure_cov(plane, self.departure_tilt_rad**2, self.departure_offset_m**2)
+
+    def apply(self, planes: Sequence[Plane]) -> tuple[Plane, ...]:
+        """``planes`` with the departure added to their covariances."""
+        if not self.estimated:
+            return tuple(planes)
+        return tuple(replace(p, cov_uvd=p.cov_uvd + self.departure_cov(p)) for p in planes)
+
+    def as_dict(self) -> dict[str, float | int | bool]:
+        return {"estimated": self.estimated, "n_links": self.n_links,
+                "sigma0_a_priori": self.sigma0_a_priori, "sigma0_estimated": self.sigma0_estimated,
+                "departure_tilt_mrad": 1000.0 * self.departure_tilt_rad,
+                "departure_offset_mm": 1000.0 * self.departure_offset_m,
+                "prior_sigma_factor": float(np.sqrt(self.prior_variance_factor))}
+
+
+def _departure_cov(plane: Plane, var_tilt: float, var_offset: float) -> FloatArray:
+    J = np.eye(3)
+    J[2, :2] = plane.basis_uv @ plane.centroid_xyz
+    return J @ np.diag([var_tilt, var_tilt, var_offset]) @ J.T
+
+
+def pooled_sigma0(links: Sequence[Link]) -> tuple[float, int]:
+    """The links' pooled sigma0 (sqrt of the sum of their weighted squared residuals over the sum
+    of their redundancies), links far beyond the median left out (:data:`_OUTLYING_LINK`), and
+    the number pooled. NaN without a link that has planes."""
+    with_planes = [link for link in links if link.redundancy > 0 and np.isfinite(link.sigma0)]
+    if not with_planes:
+        return float("nan"), 0
+    f = np.array([link.sigma0**2 for link in with_planes])
+    r = np.array([link.redundancy for link in with_planes], dtype=float)
+    keep = f <= _OUTLYING_LINK * max(float(np.median(f)), 1e-12)
+    return float(np.sqrt(np.sum(f[keep] * r[keep]) / np.sum(r[keep]))), int(keep.sum())
+
+
+def estimate_link_model(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig,
+                        start_tilt_rad: float = 1e-4, start_offset_m: float = 3e-4) -> LinkModel:
+    """The observations' model that the links of ``pairs`` fit, estimated from all of them
+    before any link is tested: the planes' departure from a plane (tilt, offset; additive) and a
+    factor of the priors' variances, as variance components (Foerstner's iteration: each
+    component scaled by its share of the weighted squared residuals over its share of the
+    redundancy, ``e^T W C_k W e / tr(W C_k W Q_ee)``, pooled over the links; links far beyond the
+    median left out, :data:`_OUTLYING_LINK`). The additive components start from
+    ``start_tilt_rad`` and ``start_offset_m`` (the planes' floors) and stay positive; the prior's
+    factor is not taken below 1. Returns the a-priori model (nothing estimated) where the links
+    fit it within :data:`MODEL_TOLERANCE`."""
+    states = [_PairState(pair, drift, config) for pair in pairs if pair.matches]
+    if not states:
+        return LinkModel()
+    var_tilt, var_offset, factor = start_tilt_rad**2, start_offset_m**2, 1.0
+    sigma0_prior = float("nan")
+    for iteration in range(_MODEL_ITERATIONS + 1):
+        model = LinkModel(np.sqrt(var_tilt), np.sqrt(var_offset), factor) if iteration else None
+        sums = _component_sums([_PairState(s.pair, drift, config, model) for s in states], config)
+        f = sums[:, 0] / np.maximum(sums[:, 1], 1e-12)  # each link's own variance factor
+        keep = f <= _OUTLYING_LINK * max(float(np.median(f)), 1e-12)
+        total = sums[keep].sum(axis=0)
+        sigma0 = float(np.sqrt(total[0] / total[1]))
+        if iteration == 0:
+            sigma0_prior = sigma0
+            if sigma0 <= MODEL_TOLERANCE:
+                return LinkModel(sigma0_a_priori=sigma0, sigma0_estimated=sigma0, n_links=int(keep.sum()))
+            continue
+        # columns: all, redundancy; then (q, r) of tilt, offset, prior
+        ratios = [total[2 + 2 * k] / max(total[3 + 2 * k], 1e-12) for k in range(3)]
+        new = (var_tilt * ratios[0], var_offset * ratios[1], max(1.0, factor * ratios[2]))
+        moved = max(abs(np.log(max(a, 1e-30) / max(b, 1e-30))) for a, b in zip(new, (var_tilt, var_offset, factor),
+                                                                                strict=True))
+        var_tilt, var_offset, factor = new
+        if moved < 0.01:
+            break
+    model = LinkModel(float(np.sqrt(var_tilt)), float(np.sqrt(var_offset)), float(factor), sigma0_prior, sigma0,
+                      int(keep.sum()))
+    log.warning("the links do not fit the a-priori model of the planes and the trajectory (pooled sigma0 %.2f "
+                "over %d links): estimated from them, each plane departs from its surface by %.2f mrad and "
+                "%.2f mm, the trajectory's relative poses err %.2f times as much as the drift model says",
+                sigma0_prior, model.n_links, 1000 * model.departure_tilt_rad, 1000 * model.departure_offset_m,
+                np.sqrt(model.prior_variance_factor))
+    return model
+
+
+def _component_sums(states: list[_PairState], config: PairwiseConfig) -> FloatArray:
+    """Per pair (in order): its weighted squared residuals and redundancy, and for the tilt
+    departure, the offset departure and the prior each its share of both, (n, 8)."""
+    out = np.zeros((len(states), 8))
+    groups: dict[int, list[int]] = {}
+    for k, s in enumerate(states):
+        groups.setdefault(len(s.active), []).append(k)
+    for members in groups.values():
+        design = _Design([states[k] for k in members])
+        sol = _solve(design, config.max_iterations)
+        W = _pinv_symmetric(design.linearise(sol["R"], sol["t"])[2])
+        We = np.einsum("gij,gj->gi", W, sol["w"])
+        WQ = W @ sol["Q_ee"]
+        part = [states[k] for k in members]
+        for c, (var_t, var_o) in enumerate(((1.0, 0.0), (0.0, 1.0))):
+            C = _component_q_ww(design, sol, part, var_t, var_o)
+            out[members, 2 + 2 * c] = np.einsum("gi,gij,gj->g", We, C, We)
+            out[members, 3 + 2 * c] = np.einsum("gij,gji->g", W @ C, WQ)
+        P = design.p_prior
+        out[members, 6] = np.einsum("gi,gi,gi->g", sol["xi"], P, sol["xi"])
+        out[members, 7] = 6.0 - np.einsum("gi,gii->g", P, sol["Q_xx"])
+        out[members, 0] = sol["omega"]
+        out[members, 1] = 3.0 * np.array([len(s.active) for s in part])
+    return out
+
+
+def _component_q_ww(design: _Design, sol: dict, part: list[_PairState], var_t: float, var_o: float) -> FloatArray:
+    """The conditions' covariance (g, 3m, 3m) from one departure component of unit size on every
+    plane, at the solution."""
+    a = [s.by_id_i[m.plane_i] for s in part for m in s.active]
+    b = [s.by_id_j[m.plane_j] for s in part for m in s.active]
+    shape = design.cov_a.shape
+    cov_a, cov_b = design.cov_a, design.cov_b
+    try:
+        design.cov_a = np.array([_departure_cov(p, var_t, var_o) for p in a]).reshape(shape)
+        design.cov_b = np.array([_departure_cov(p, var_t, var_o) for p in b]).reshape(shape)
+        return design.linearise(sol["R"], sol["t"])[2]
+    finally:
+        design.cov_a, design.cov_b = cov_a, cov_b
