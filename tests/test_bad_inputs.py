@@ -815,3 +815,22 @@ def test_a_block_that_cannot_converge_is_exit_1_with_no_outputs_or_a_report_mark
     assert report["adjustment"]["global_test_passed"] is False
     assert report["adjustment"]["failure"] == "no convergence after 1 iterations"
     assert "ADJUSTMENT FAILED" in (out / "report.html").read_text()
+
+
+def test_a_network_whose_links_all_fail_is_exit_1_never_a_result_of_sigma_zero(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # No pair of scans shares enough planes to link (as where every link fails its test): the
+    # block would be the trajectory alone, its redundancy 0 and every sigma 0.0 mm.
+    sample = Path(__file__).parent.parent / "sample_data"
+    config = tmp_path / "no_links.toml"
+    config.write_text("[matching]\nmin_matches = 60\n")
+    out = tmp_path / "out"
+    args = ["process", "-t", sample / "run_trajectory.txt", "-c", sample / "run_cloud.laz", "-o", out,
+            "--config", config]
+    code, _, err = run_cli(args, capsys)
+    lines = message_lines(err)
+    assert code == 1 and "Traceback" not in err
+    assert len(lines) == 1, err
+    assert "no plane link and no control point is left to check the trajectory" in lines[0], lines[0]
+    assert result_files(out) == []
