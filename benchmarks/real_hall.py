@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kinreg.geometry import Pose, matrix_to_quat, make_quat_continuous
+from kinreg.geometry import Pose, make_quat_continuous, matrix_to_quat
 from kinreg.report.cloud_views import MIN_CELL_POINTS
 from kinreg.report.thickness import CellMoments, compare
 from kinreg.simulation.drift import DriftConfig, DriftModel, drifted_trajectory
@@ -126,7 +126,7 @@ def reference_trajectory(hall: Hall) -> Trajectory:
     from scipy.spatial.transform import Rotation, RotationSpline
 
     t0, t1 = hall.stamps_s[0] - SWEEP_S, hall.stamps_s[-1]
-    stamps = t0 + np.arange(int(math.ceil((t1 - t0) * RATE_HZ)) + 1) / RATE_HZ
+    stamps = t0 + np.arange(math.ceil((t1 - t0) * RATE_HZ) + 1) / RATE_HZ
     rot = Rotation.from_matrix(hall.T_world_body[:, :3, :3])
     # extrapolate the first 0.1 s with the first keyframe's pose
     q_t = np.clip(stamps, hall.stamps_s[0], hall.stamps_s[-1])
