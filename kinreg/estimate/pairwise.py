@@ -381,6 +381,11 @@ MODEL_TOLERANCE = 1.1
 # pooled estimates (a wrong plane match, not the model: 3 times the median sigma0).
 _OUTLYING_LINK = 9.0
 _MODEL_ITERATIONS = 30
+# The planes' departure is estimated per size class: a large floor's tilt departs less than a
+# small patch's. Classes are the terciles of the matched planes' areas (the scene's own scale),
+# as many as leave each class this many matched planes.
+_SIZE_CLASSES = 3
+_MIN_CLASS_PLANES = 30
 
 
 @dataclass(frozen=True)
@@ -390,18 +395,20 @@ class LinkModel:
     A plane fitted to a real surface errs by the surface's own departure from a plane (floors by
     millimetres over metres, walls that bow, the quasi-static scan's own blur), which does not
     shrink with the number of points: two scans see different parts of the surface and their
-    planes differ by it. It enters every plane as an additive covariance, a tilt
-    ``departure_tilt_rad`` about each tangent and an offset ``departure_offset_m`` at the plane's
-    centroid. The trajectory's relative poses (the pairs' priors) may err by more than the drift
-    model says (an odometry-grade trajectory errs by centimetres within seconds): their variances
-    are multiplied by ``prior_variance_factor`` (never below 1). All three are variance components
-    estimated over all links at once (:func:`estimate_link_model`). ``sigma0_a_priori`` is the
-    links' pooled sigma0 under the a-priori model; ``n_links`` the links pooled.
+    planes differ by it. It enters every plane as an additive covariance: a tilt about each
+    tangent and an offset at the plane's centroid, per size class of the planes (``area_edges_m2``
+    between the classes; ``departure_tilt_rad[k]``, ``departure_offset_m[k]`` of class k). The
+    trajectory's relative poses (the pairs' priors) may err by more than the drift model says:
+    their variances are multiplied by ``prior_variance_factor`` (never below 1). All are variance
+    components estimated over all links at once (:func:`estimate_link_model`).
+    ``sigma0_a_priori`` is the links' pooled sigma0 under the a-priori model, ``sigma0_estimated``
+    under this one; ``n_links`` the links pooled.
     """
 
-    departure_tilt_rad: float = 0.0
-    departure_offset_m: float = 0.0
+    departure_tilt_rad: tuple[float, ...] = ()
+    departure_offset_m: tuple[float, ...] = ()
     prior_variance_factor: float = 1.0
+    area_edges_m2: tuple[float, ...] = ()
     sigma0_a_priori: float = float("nan")
     sigma0_estimated: float = float("nan")
     n_links: int = 0
@@ -409,28 +416,44 @@ class LinkModel:
     @property
     def estimated(self) -> bool:
         """Whether the model differs from the a-priori one."""
-        return bool(self.departure_tilt_rad > 0.0 or self.departure_offset_m > 0.0 or self.prior_variance_factor > 1.0)
+        return bool(any(v > 0.0 for v in (*self.departure_tilt_rad, *self.departure_offset_m))
+                    or self.prior_variance_factor > 1.0)
+
+    def size_class(self, plane: Plane) -> int:
+        return int(np.searchsorted(self.area_edges_m2, plane.area_m2))
 
     def departure_cov(self, plane: Plane) -> FloatArray:
-        """The departure's covariance of ``plane``'s (tilt u, tilt v, d): the offset at the centroid
-        reaches ``d`` through the centroid's lever arm, ``d = e_c + (u.c) a + (v.c) b``."""
-        return _departure_cov(plane, self.departure_tilt_rad**2, self.departure_offset_m**2)
+        """The departure's covariance of ``plane``'s (tilt u, tilt v, d)."""
+        k = self.size_class(plane)
+        return _departure_cov(plane, self.departure_tilt_rad[k] ** 2, self.departure_offset_m[k] ** 2)
 
     def apply(self, planes: Sequence[Plane]) -> tuple[Plane, ...]:
         """``planes`` with the departure added to their covariances."""
-        if not self.estimated:
+        if not self.departure_tilt_rad:
             return tuple(planes)
         return tuple(replace(p, cov_uvd=p.cov_uvd + self.departure_cov(p)) for p in planes)
 
-    def as_dict(self) -> dict[str, float | int | bool]:
+    def as_dict(self) -> dict[str, object]:
         return {"estimated": self.estimated, "n_links": self.n_links,
                 "sigma0_a_priori": self.sigma0_a_priori, "sigma0_estimated": self.sigma0_estimated,
-                "departure_tilt_mrad": 1000.0 * self.departure_tilt_rad,
-                "departure_offset_mm": 1000.0 * self.departure_offset_m,
+                "area_edges_m2": list(self.area_edges_m2),
+                "departure_tilt_mrad": [1000.0 * v for v in self.departure_tilt_rad],
+                "departure_offset_mm": [1000.0 * v for v in self.departure_offset_m],
                 "prior_sigma_factor": float(np.sqrt(self.prior_variance_factor))}
+
+    def describe(self) -> str:
+        """The model in words, for a log line or the report."""
+        edges = ("0", *(f"{e:.0f}" for e in self.area_edges_m2), "")
+        classes = ", ".join(f"{1000 * t:.2f} mrad / {1000 * o:.1f} mm ({a}-{b} m^2)".replace("-)", "+)")
+                            for t, o, a, b in zip(self.departure_tilt_rad, self.departure_offset_m, edges[:-1],
+                                                  edges[1:], strict=True))
+        return (f"planes depart from their surfaces by {classes}; the trajectory's relative poses err "
+                f"{np.sqrt(self.prior_variance_factor):.2f} times as much as the drift model says")
 
 
 def _departure_cov(plane: Plane, var_tilt: float, var_offset: float) -> FloatArray:
+    """(tilt u, tilt v, d) of a departure by ``var_tilt`` about each tangent and ``var_offset`` at
+    the centroid: ``d = e_c + (u.c) a + (v.c) b``."""
     J = np.eye(3)
     J[2, :2] = plane.basis_uv @ plane.centroid_xyz
     return J @ np.diag([var_tilt, var_tilt, var_offset]) @ J.T
@@ -449,25 +472,36 @@ def pooled_sigma0(links: Sequence[Link]) -> tuple[float, int]:
     return float(np.sqrt(np.sum(f[keep] * r[keep]) / np.sum(r[keep]))), int(keep.sum())
 
 
+def _area_edges(states: Sequence[_PairState]) -> tuple[float, ...]:
+    areas = np.array([p.area_m2 for s in states for m in s.active
+                      for p in (s.by_id_i[m.plane_i], s.by_id_j[m.plane_j])])
+    classes = int(min(_SIZE_CLASSES, max(1, len(areas) // _MIN_CLASS_PLANES)))
+    return tuple(float(q) for q in np.quantile(areas, np.arange(1, classes) / classes)) if classes > 1 else ()
+
+
 def estimate_link_model(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig,
                         start_tilt_rad: float = 1e-4, start_offset_m: float = 3e-4) -> LinkModel:
     """The observations' model that the links of ``pairs`` fit, estimated from all of them
-    before any link is tested: the planes' departure from a plane (tilt, offset; additive) and a
-    factor of the priors' variances, as variance components (Foerstner's iteration: each
-    component scaled by its share of the weighted squared residuals over its share of the
-    redundancy, ``e^T W C_k W e / tr(W C_k W Q_ee)``, pooled over the links; links far beyond the
-    median left out, :data:`_OUTLYING_LINK`). The additive components start from
-    ``start_tilt_rad`` and ``start_offset_m`` (the planes' floors) and stay positive; the prior's
-    factor is not taken below 1. Returns the a-priori model (nothing estimated) where the links
-    fit it within :data:`MODEL_TOLERANCE`."""
+    before any link is tested: the planes' departure from a plane (tilt, offset; additive; per
+    size class) and a factor of the priors' variances, as variance components (Foerstner's
+    iteration: each component scaled by its share of the weighted squared residuals over its
+    share of the redundancy, ``e^T W C_k W e / tr(W C_k W Q_ee)``, pooled over the links; links far
+    beyond the median left out, :data:`_OUTLYING_LINK`). The additive components start from
+    ``start_tilt_rad`` and ``start_offset_m`` and stay positive; the prior's factor is not taken
+    below 1. Returns the a-priori model (nothing estimated) where the links fit it within
+    :data:`MODEL_TOLERANCE`."""
     states = [_PairState(pair, drift, config) for pair in pairs if pair.matches]
     if not states:
         return LinkModel()
-    var_tilt, var_offset, factor = start_tilt_rad**2, start_offset_m**2, 1.0
+    edges = _area_edges(states)
+    n_classes = len(edges) + 1
+    var = np.array([start_tilt_rad**2] * n_classes + [start_offset_m**2] * n_classes)
+    factor = 1.0
     sigma0_prior = float("nan")
     for iteration in range(_MODEL_ITERATIONS + 1):
-        model = LinkModel(np.sqrt(var_tilt), np.sqrt(var_offset), factor) if iteration else None
-        sums = _component_sums([_PairState(s.pair, drift, config, model) for s in states], config)
+        model = LinkModel(tuple(np.sqrt(var[:n_classes])), tuple(np.sqrt(var[n_classes:])), factor, edges)
+        sums = _component_sums([_PairState(s.pair, drift, config, model if iteration else None) for s in states],
+                               config, model)
         f = sums[:, 0] / np.maximum(sums[:, 1], 1e-12)  # each link's own variance factor
         keep = f <= _OUTLYING_LINK * max(float(np.median(f)), 1e-12)
         total = sums[keep].sum(axis=0)
@@ -477,28 +511,28 @@ def estimate_link_model(pairs: Sequence[PairInput], drift: DriftConfig, config: 
             if sigma0 <= MODEL_TOLERANCE:
                 return LinkModel(sigma0_a_priori=sigma0, sigma0_estimated=sigma0, n_links=int(keep.sum()))
             continue
-        # columns: all, redundancy; then (q, r) of tilt, offset, prior
-        ratios = [total[2 + 2 * k] / max(total[3 + 2 * k], 1e-12) for k in range(3)]
-        new = (var_tilt * ratios[0], var_offset * ratios[1], max(1.0, factor * ratios[2]))
-        moved = max(abs(np.log(max(a, 1e-30) / max(b, 1e-30))) for a, b in zip(new, (var_tilt, var_offset, factor),
-                                                                                strict=True))
-        var_tilt, var_offset, factor = new
+        q, r = total[2::2], np.maximum(total[3::2], 1e-12)  # per component: tilt, offset per class; the prior
+        new_var = var * q[:-1] / r[:-1]
+        new_factor = max(1.0, factor * q[-1] / r[-1])
+        moved = float(np.max(np.abs(np.log(np.maximum(np.append(new_var, new_factor), 1e-30)
+                                           / np.maximum(np.append(var, factor), 1e-30)))))
+        var, factor = new_var, new_factor
         if moved < 0.01:
             break
-    model = LinkModel(float(np.sqrt(var_tilt)), float(np.sqrt(var_offset)), float(factor), sigma0_prior, sigma0,
+    model = LinkModel(tuple(float(v) for v in np.sqrt(var[:n_classes])),
+                      tuple(float(v) for v in np.sqrt(var[n_classes:])), float(factor), edges, sigma0_prior, sigma0,
                       int(keep.sum()))
-    log.warning("the links do not fit the a-priori model of the planes and the trajectory (pooled sigma0 %.2f "
-                "over %d links): estimated from them, each plane departs from its surface by %.2f mrad and "
-                "%.2f mm, the trajectory's relative poses err %.2f times as much as the drift model says",
-                sigma0_prior, model.n_links, 1000 * model.departure_tilt_rad, 1000 * model.departure_offset_m,
-                np.sqrt(model.prior_variance_factor))
+    log.warning("the links do not fit the a-priori model of the planes and the trajectory (pooled sigma0 %.2f over "
+                "%d links); estimated from them: %s", sigma0_prior, model.n_links, model.describe())
     return model
 
 
-def _component_sums(states: list[_PairState], config: PairwiseConfig) -> FloatArray:
-    """Per pair (in order): its weighted squared residuals and redundancy, and for the tilt
-    departure, the offset departure and the prior each its share of both, (n, 8)."""
-    out = np.zeros((len(states), 8))
+def _component_sums(states: list[_PairState], config: PairwiseConfig, model: LinkModel) -> FloatArray:
+    """Per pair (in order): its weighted squared residuals and redundancy, then for each
+    component of ``model`` (tilt and offset departure per size class, the prior) its share of
+    both: (n, 2 + 2 (2 C + 1)) for C size classes."""
+    n_classes = len(model.area_edges_m2) + 1
+    out = np.zeros((len(states), 2 + 2 * (2 * n_classes + 1)))
     groups: dict[int, list[int]] = {}
     for k, s in enumerate(states):
         groups.setdefault(len(s.active), []).append(k)
@@ -509,28 +543,32 @@ def _component_sums(states: list[_PairState], config: PairwiseConfig) -> FloatAr
         We = np.einsum("gij,gj->gi", W, sol["w"])
         WQ = W @ sol["Q_ee"]
         part = [states[k] for k in members]
-        for c, (var_t, var_o) in enumerate(((1.0, 0.0), (0.0, 1.0))):
-            C = _component_q_ww(design, sol, part, var_t, var_o)
+        for c in range(2 * n_classes):
+            C = _component_q_ww(design, sol, part, model, c % n_classes, c < n_classes)
             out[members, 2 + 2 * c] = np.einsum("gi,gij,gj->g", We, C, We)
             out[members, 3 + 2 * c] = np.einsum("gij,gji->g", W @ C, WQ)
         P = design.p_prior
-        out[members, 6] = np.einsum("gi,gi,gi->g", sol["xi"], P, sol["xi"])
-        out[members, 7] = 6.0 - np.einsum("gi,gii->g", P, sol["Q_xx"])
+        out[members, -2] = np.einsum("gi,gi,gi->g", sol["xi"], P, sol["xi"])
+        out[members, -1] = 6.0 - np.einsum("gi,gii->g", P, sol["Q_xx"])
         out[members, 0] = sol["omega"]
         out[members, 1] = 3.0 * np.array([len(s.active) for s in part])
     return out
 
 
-def _component_q_ww(design: _Design, sol: dict, part: list[_PairState], var_t: float, var_o: float) -> FloatArray:
-    """The conditions' covariance (g, 3m, 3m) from one departure component of unit size on every
-    plane, at the solution."""
-    a = [s.by_id_i[m.plane_i] for s in part for m in s.active]
-    b = [s.by_id_j[m.plane_j] for s in part for m in s.active]
+def _component_q_ww(design: _Design, sol: dict, part: list[_PairState], model: LinkModel, size_class: int,
+                    tilt: bool) -> FloatArray:
+    """The conditions' covariance (g, 3m, 3m) from one departure component of unit size (the tilt
+    or the offset of one size class) on the planes of that class, at the solution."""
+    var_t, var_o = (1.0, 0.0) if tilt else (0.0, 1.0)
+
+    def cov(p: Plane) -> FloatArray:
+        return _departure_cov(p, var_t, var_o) if model.size_class(p) == size_class else np.zeros((3, 3))
+
     shape = design.cov_a.shape
     cov_a, cov_b = design.cov_a, design.cov_b
     try:
-        design.cov_a = np.array([_departure_cov(p, var_t, var_o) for p in a]).reshape(shape)
-        design.cov_b = np.array([_departure_cov(p, var_t, var_o) for p in b]).reshape(shape)
+        design.cov_a = np.array([cov(s.by_id_i[m.plane_i]) for s in part for m in s.active]).reshape(shape)
+        design.cov_b = np.array([cov(s.by_id_j[m.plane_j]) for s in part for m in s.active]).reshape(shape)
         return design.linearise(sol["R"], sol["t"])[2]
     finally:
         design.cov_a, design.cov_b = cov_a, cov_b
