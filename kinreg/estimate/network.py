@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -206,6 +206,9 @@ class Network:
     # planes as nodes of their own instead of the links (kinreg.estimate.plane_nodes)
     planes: tuple[tuple[Plane, ...], ...] | None = None
     plane_nodes: PlaneNodes | None = None  # ... and which of them are one physical plane
+    # the model of the planes and the trajectory the links were adjusted with (where the a-priori
+    # one did not fit them, kinreg.estimate.pairwise.estimate_link_model); the block's planes carry it too
+    link_model: LinkModel = field(default_factory=LinkModel)
 
     @property
     def initial_poses(self) -> Pose:
@@ -232,5 +235,5 @@ class Network:
         """The links the block observes: none where it adjusts the physical planes instead."""
         return self.links if self.plane_nodes is None else ()
 
-    def with_links(self, links: Sequence[Link]) -> Network:
-        return replace(self, links=tuple(links))
+    def with_links(self, links: Sequence[Link], model: LinkModel | None = None) -> Network:
+        return replace(self, links=tuple(links), link_model=self.link_model if model is None else model)

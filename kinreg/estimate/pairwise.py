@@ -434,8 +434,11 @@ class LinkModel:
         return tuple(replace(p, cov_uvd=p.cov_uvd + self.departure_cov(p)) for p in planes)
 
     def as_dict(self) -> dict[str, object]:
+        def finite(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
         return {"estimated": self.estimated, "n_links": self.n_links,
-                "sigma0_a_priori": self.sigma0_a_priori, "sigma0_estimated": self.sigma0_estimated,
+                "sigma0_a_priori": finite(self.sigma0_a_priori), "sigma0_estimated": finite(self.sigma0_estimated),
                 "area_edges_m2": list(self.area_edges_m2),
                 "departure_tilt_mrad": [1000.0 * v for v in self.departure_tilt_rad],
                 "departure_offset_mm": [1000.0 * v for v in self.departure_offset_m],

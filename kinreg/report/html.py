@@ -224,6 +224,15 @@ def _drift_and_links(report: dict[str, Any]) -> str:
         ("plane matches (rejected)", f"{_count(links.get('n_matches'))} "
                                      f"({_count(links.get('n_rejected_matches'))})"),
     ]
+    model = links.get("model") or {}
+    if model.get("estimated"):
+        edges = ["0", *(f"{e:.0f}" for e in model.get("area_edges_m2") or []), ""]
+        rows.append(("links' model, estimated (the a-priori one gave sigma0 "
+                     f"{_fmt(model.get('sigma0_a_priori'), 2)})",
+                     "; ".join(f"planes {edges[k]}-{edges[k + 1]} m\u00b2: {_fmt(t, 2)} mrad / {_fmt(o, 1)} mm"
+                               for k, (t, o) in enumerate(zip(model.get("departure_tilt_mrad") or [],
+                                                              model.get("departure_offset_mm") or [], strict=True)))
+                     + f"; trajectory priors \u00d7{_fmt(model.get('prior_sigma_factor'), 2)}"))
     ranks = links.get("rank_histogram") or {}
     if ranks:
         rows.append(("links by rank", ", ".join(f"{k}: {_count(v)}" for k, v in ranks.items() if v)))

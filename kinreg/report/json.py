@@ -154,6 +154,8 @@ def build_report(
             "n_rejected_matches": int(sum(len(link.rejected) for link in links)),
             "rank_histogram": {str(r): sum(link.rank == r for link in links) for r in range(7)},
             "pairs": [[link.scan_i, link.scan_j, link.status.value] for link in links],
+            # the model of the planes and the trajectory the links were adjusted with
+            "model": network.link_model.as_dict(),
         },
         "timings_s": timings_s,
         "trajectory_plot": trajectory_plot,

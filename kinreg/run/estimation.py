@@ -18,6 +18,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import build_network
 from kinreg.estimate.drift import DriftRates, WindowMap
 from kinreg.estimate.network import Network
+from kinreg.estimate.pairwise import LinkModel
 from kinreg.estimate.strategy import (
     AdjustedNetwork,
     Estimate,
@@ -141,15 +142,18 @@ class _RunOperations:
                                                               config.planes, run.progress, run.folder)
         stations, planes = kinematic.stations + static_stations, kinematic.planes + static_planes
         run.clock.lap("planes")
-        links = link_stations_cached(stations, planes, config, self.static, run.progress, run.executor, run.folder)
+        links, model = link_stations_cached(stations, planes, config, self.static, run.progress, run.executor,
+                                            run.folder)
         run.clock.lap("link")
         controls = () if control is None else tie_points(control, stations, kinematic.trajectories, config.control)
-        network = build_network(stations, planes, links, references, self.static, config, controls)
+        network = dataclasses.replace(build_network(stations, planes, links, references, self.static, config, controls),
+                          link_model=model)
         self.last = RunSlicing(config, sliced, kinematic, stations, planes, network)
         return self.last
 
     def link_again(self, stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], rates: DriftRates,
-                   adjusted: BlockResult, previous: Sequence[Link], velocity_cov: np.ndarray | None) -> list[Link]:
+                   adjusted: BlockResult, previous: Sequence[Link],
+                   velocity_cov: np.ndarray | None) -> tuple[list[Link], LinkModel]:
         """Every candidate pair linked again from the ``adjusted`` poses, on the executor."""
         config = self.run.config
         return link_stations(stations, planes, config.matching, config.drift, config.pairwise, self.run.progress,
