@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import json
 import logging
 import os
 import re
@@ -808,8 +809,8 @@ def test_a_block_that_cannot_converge_is_exit_1_with_no_outputs_or_a_report_mark
     code, _, err = run_cli([*args, "--config", report_toml, "--resume"], capsys)
     lines = message_lines(err)
     assert code == 1
-    assert len(lines) == 1 and "report.json in" in lines[0] and "marked failed" in lines[0], err
-    assert sorted(p.name for p in result_files(out)) == ["report.html", "report.json"]
+    assert len(lines) == 1 and "report.html in" in lines[0] and "marked failed" in lines[0], err
+    assert sorted(p.name for p in result_files(out)) == ["links.csv", "planes.csv", "report.html", "report.json"]
     report = json.loads((out / "report.json").read_text())
     assert report["adjustment"]["status"] == "failed"
     assert report["adjustment"]["global_test_passed"] is False
@@ -834,3 +835,14 @@ def test_a_network_whose_links_all_fail_is_exit_1_never_a_result_of_sigma_zero(
     assert len(lines) == 1, err
     assert "no plane link and no control point is left to check the trajectory" in lines[0], lines[0]
     assert result_files(out) == []
+    # With on_failure = "report": the failure on the report's first line, the link graph, links.csv
+    # and planes.csv to see why, and no result.
+    config.write_text('[matching]\nmin_matches = 60\n[block]\non_failure = "report"\n')
+    code, _, err = run_cli([*args, "--resume"], capsys)
+    assert code == 1 and "Traceback" not in err, err
+    assert sorted(p.name for p in result_files(out)) == ["links.csv", "planes.csv", "report.html", "report.json"]
+    html = (out / "report.html").read_text()
+    assert html.index("ADJUSTMENT FAILED: no plane link") < html.index("<h2")
+    assert "Link graph" in html and "0.0 mm" not in html
+    report = json.loads((out / "report.json").read_text())
+    assert report["adjustment"]["status"] == "failed" and len(report["stations"]["rows"]) > 10

@@ -101,11 +101,11 @@ def estimate(run: RunContext) -> Estimated:
     except AdjustmentFailedError as e:
         last = on_run.last
         assert last is not None  # an adjustment fails only once a slicing is there
-        fail_adjustment(e.result, last.network, last.config, run.folder, _report_inputs(run, last))
+        fail_adjustment(e.result, last.network, last.config, run.folder, _report_inputs(run, last), last.planes)
     if chosen.failure:
         failed = dataclasses.replace(chosen.adjusted.result, failure=chosen.failure)
         fail_adjustment(failed, chosen.adjusted.network, chosen.sliced.config, run.folder,
-                        _report_inputs(run, chosen.sliced))
+                        _report_inputs(run, chosen.sliced), chosen.sliced.planes)
     return Estimated(chosen)
 
 

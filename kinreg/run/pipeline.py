@@ -148,7 +148,7 @@ class ProcessSummary:
 
 
 OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "corrected.laz", "sequence.e57",
-                "report.json", "report.html", "config.toml", "control_points.csv")
+                "report.json", "report.html", "config.toml", "control_points.csv", "planes.csv")
 
 
 @contextlib.contextmanager
