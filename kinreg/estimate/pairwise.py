@@ -382,9 +382,9 @@ MODEL_TOLERANCE = 1.1
 _OUTLYING_LINK = 9.0
 _MODEL_ITERATIONS = 30
 # The planes' departure is estimated per size class: a large floor's tilt departs less than a
-# small patch's. Classes are the terciles of the matched planes' areas (the scene's own scale),
-# as many as leave each class this many matched planes.
-_SIZE_CLASSES = 3
+# small patch's. The classes are half decades of area (1, 3.2, 10, 32, 100, 316 m^2, ...); a class
+# with fewer matched planes than this joins the next smaller one.
+_CLASS_EDGES_M2 = tuple(10.0 ** (k / 2) for k in range(8))
 _MIN_CLASS_PLANES = 30
 
 
@@ -396,8 +396,8 @@ class LinkModel:
     millimetres over metres, walls that bow, the quasi-static scan's own blur), which does not
     shrink with the number of points: two scans see different parts of the surface and their
     planes differ by it. It enters every plane as an additive covariance: a tilt about each
-    tangent and an offset at the plane's centroid, per size class of the planes (``area_edges_m2``
-    between the classes; ``departure_tilt_rad[k]``, ``departure_offset_m[k]`` of class k). The
+    tangent and an offset at the plane's centroid, per size class of the planes (half decades of
+    area, ``area_edges_m2`` between the classes; ``departure_tilt_rad[k]``, ``departure_offset_m[k]`` of class k). The
     trajectory's relative poses (the pairs' priors) may err by more than the drift model says:
     their variances are multiplied by ``prior_variance_factor`` (never below 1). All are variance
     components estimated over all links at once (:func:`estimate_link_model`).
@@ -476,10 +476,19 @@ def pooled_sigma0(links: Sequence[Link]) -> tuple[float, int]:
 
 
 def _area_edges(states: Sequence[_PairState]) -> tuple[float, ...]:
+    """The edges between the size classes of the matched planes (:data:`_CLASS_EDGES_M2`), each
+    class holding at least :data:`_MIN_CLASS_PLANES` of them where there are that many."""
     areas = np.array([p.area_m2 for s in states for m in s.active
                       for p in (s.by_id_i[m.plane_i], s.by_id_j[m.plane_j])])
-    classes = int(min(_SIZE_CLASSES, max(1, len(areas) // _MIN_CLASS_PLANES)))
-    return tuple(float(q) for q in np.quantile(areas, np.arange(1, classes) / classes)) if classes > 1 else ()
+    edges = [e for e in _CLASS_EDGES_M2 if areas.min() < e < areas.max()]
+    while edges:
+        counts = np.bincount(np.searchsorted(edges, areas), minlength=len(edges) + 1)
+        sparse = np.flatnonzero(counts < _MIN_CLASS_PLANES)
+        if not len(sparse):
+            break
+        k = int(sparse[-1])  # the largest sparse class joins the next smaller one (the first: the next larger)
+        del edges[max(k - 1, 0)]
+    return tuple(edges)
 
 
 def estimate_link_model(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig,
