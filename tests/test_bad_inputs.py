@@ -113,8 +113,9 @@ class Env:
 
 @pytest.fixture(scope="module")
 def base_run(tmp_path_factory: pytest.TempPathFactory) -> SyntheticRun:
-    # 12 s of trajectory (1201 rows, line 1 is the header) and 20,000 time-sorted points.
-    return write_synthetic_run(tmp_path_factory.mktemp("bad_inputs") / "run", n_points=20_000, duration_s=12.0)
+    # 12 s of trajectory (1201 rows, line 1 is the header) and 60,000 time-sorted points: enough
+    # for planes in windows of 2.5 s.
+    return write_synthetic_run(tmp_path_factory.mktemp("bad_inputs") / "run", n_points=60_000, duration_s=12.0)
 
 
 def _set_field(line: str, index: int, value: str) -> str:
@@ -654,7 +655,7 @@ def test_partial_time_overlap_warns_with_the_share_outside(
     share = 100.0 * outside / len(base_run.stamps_s)
     assert 35.0 < share < 45.0
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert any(str(base_run.cloud_path) in w and f"{outside} of 20000 points ({share:.1f} %)" in w
+    assert any(str(base_run.cloud_path) in w and f"{outside} of 60000 points ({share:.1f} %)" in w
                and "outside the trajectory's time range" in w for w in warnings), warnings
     assert f"{outside:,} ({share:.1f} %)" in stdout  # and the summary table repeats it
     assert out.exists()

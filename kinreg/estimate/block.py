@@ -560,8 +560,6 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
 _CHECKING_KINDS = [k.value for k in (ObservationKind.PLANES, ObservationKind.POINT, *SCAN_PLANE_RANK)]
 # Below this redundancy nothing checks the network: its sigma0 and every sigma scaled by it mean nothing.
 _MIN_REDUNDANCY = 0.5
-# A sigma0 this small says the residuals vanished (an exactly determined network), not a good fit.
-_MIN_SIGMA0 = 1e-3
 
 
 def _failure(converged: bool, iterations: int, poses: Pose, omega: float, redundancy: float,
@@ -582,8 +580,6 @@ def _failure(converged: bool, iterations: int, poses: Pose, omega: float, redund
                 "rejected or none was found): the result would be the input")
     if redundancy < _MIN_REDUNDANCY:
         return f"redundancy {redundancy:.2g}: nothing checks the network, its sigmas would say nothing"
-    if np.sqrt(omega / redundancy) < _MIN_SIGMA0:
-        return f"sigma0 {np.sqrt(omega / redundancy):.2g}: the residuals vanish, nothing checks the network"
     return ""
 
 
