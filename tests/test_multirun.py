@@ -143,8 +143,8 @@ def test_both_runs_come_out_in_one_frame(project: Path) -> None:
 def test_corrected_cloud_and_trajectory_per_run(project: Path) -> None:
     out = project / "out"
     assert sorted(p.name for p in out.iterdir()) == sorted([
-        ".kinreg-cache", "config.toml", "control_points.csv", "corrected_r1.laz", "corrected_r2.laz", "links.csv", "planes.csv",
-        "report.html", "report.json", "sequence.e57", "stations.csv", "trajectory_corrected_r1.txt",
+        ".kinreg-cache", "config.toml", "control_points.csv", "corrected_r1.laz", "corrected_r2.laz", "links.csv",
+        "planes.csv", "report.html", "report.json", "sequence.e57", "stations.csv", "trajectory_corrected_r1.txt",
         "trajectory_corrected_r2.txt", "figures"])
     for k in (1, 2):
         source = laspy.read(project / f"run{k}" / "run_cloud.laz")
