@@ -202,19 +202,25 @@ def laz_chunks(path: Path):
             yield np.stack([chunk.x, chunk.y, chunk.z], axis=1).astype(np.float64)
 
 
-def stations_after_rigid_fit(stations_csv: Path, ref: Trajectory) -> float:
-    """RMS [mm] of the stations' positions against the dataset's poses at their times, after a
-    rigid fit (the dataset's poses are odometry-grade: a figure of agreement, not of accuracy)."""
-    rows = np.genfromtxt(stations_csv, delimiter=",", names=True)
-    t = rows["t"][np.isfinite(rows["t"])]
-    est = np.stack([rows["x"], rows["y"], rows["z"]], axis=1)[np.isfinite(rows["t"])]
-    truth = ref.pose_at(np.clip(t, ref.stamps_s[0], ref.stamps_s[-1])).t_xyz
+def rigid_fit_rms_mm(est: np.ndarray, truth: np.ndarray) -> float:
+    """RMS [mm] of ``truth - est`` (n, 3) after the rigid fit of ``est`` onto ``truth``."""
     a, b = est - est.mean(0), truth - truth.mean(0)
     U, _, Vt = np.linalg.svd(a.T @ b)
     S = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    R = (U @ S @ Vt).T
-    res = b - a @ R.T
+    res = b - a @ (U @ S @ Vt)
     return float(np.sqrt(np.mean(np.sum(res**2, axis=1))) * 1000)
+
+
+def station_agreement(stations_csv: Path, ref: Trajectory, drifted: Trajectory) -> tuple[float, float]:
+    """RMS [mm] after a rigid fit of the adjusted stations' positions, and of the drifted
+    trajectory's at the same times, against the dataset's poses (odometry-grade: a figure of
+    agreement, not of accuracy)."""
+    rows = np.genfromtxt(stations_csv, delimiter=",", names=True)
+    quasi = np.isfinite(rows["t"])
+    t = np.clip(rows["t"][quasi], ref.stamps_s[0], ref.stamps_s[-1])
+    adjusted = np.stack([rows["x"], rows["y"], rows["z"]], axis=1)[quasi]
+    truth = ref.pose_at(t).t_xyz
+    return rigid_fit_rms_mm(adjusted, truth), rigid_fit_rms_mm(drifted.pose_at(t).t_xyz, truth)
 
 
 def run_one(case: dict, hall: Hall, ref: Trajectory, times: np.ndarray, p_world: np.ndarray,
@@ -247,25 +253,13 @@ def run_one(case: dict, hall: Hall, ref: Trajectory, times: np.ndarray, p_world:
         result["links"] = dict(links.get("by_status", {}), sigma0=links.get("sigma0"))
         result["position_sigma_mm"] = rep.get("stations", {}).get("position_sigma_mm")
         result["window_s"] = rep.get("slicing", {}).get("window_s")
-        result["stations_rigid_rms_mm"] = round(stations_after_rigid_fit(folder / "out" / "stations.csv", ref), 1)
-        result["stations_rigid_rms_mm_input"] = round(_input_stations_rms(folder / "out" / "stations.csv",
-                                                                          drifted, ref), 1)
+        adjusted_mm, input_mm = station_agreement(folder / "out" / "stations.csv", ref, drifted)
+        result["stations_rigid_rms_mm"] = round(adjusted_mm, 1)
+        result["stations_rigid_rms_mm_input"] = round(input_mm, 1)
     if not keep:
         for p in (folder / "cloud.laz", folder / "out" / "corrected.laz", folder / "out" / "sequence.e57"):
             p.unlink(missing_ok=True)
     return result
-
-
-def _input_stations_rms(stations_csv: Path, drifted: Trajectory, ref: Trajectory) -> float:
-    rows = np.genfromtxt(stations_csv, delimiter=",", names=True)
-    t = rows["t"][np.isfinite(rows["t"])]
-    t = np.clip(t, ref.stamps_s[0], ref.stamps_s[-1])
-    est, truth = drifted.pose_at(t).t_xyz, ref.pose_at(t).t_xyz
-    a, b = est - est.mean(0), truth - truth.mean(0)
-    U, _, Vt = np.linalg.svd(a.T @ b)
-    S = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
-    res = b - a @ (U @ S @ Vt)
-    return float(np.sqrt(np.mean(np.sum(res**2, axis=1))) * 1000)
 
 
 def main() -> None:
