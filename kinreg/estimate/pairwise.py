@@ -22,6 +22,7 @@ instead of once per link.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -440,17 +441,23 @@ class LinkModel:
         return {"estimated": self.estimated, "n_links": self.n_links,
                 "sigma0_a_priori": finite(self.sigma0_a_priori), "sigma0_estimated": finite(self.sigma0_estimated),
                 "area_edges_m2": list(self.area_edges_m2),
+                "size_classes_m2": self.size_classes() if self.departure_tilt_rad else [],
                 "departure_tilt_mrad": [1000.0 * v for v in self.departure_tilt_rad],
                 "departure_offset_mm": [1000.0 * v for v in self.departure_offset_m],
                 "prior_sigma_factor": float(np.sqrt(self.prior_variance_factor))}
 
+    def size_classes(self) -> list[str]:
+        """The size classes' names (areas in m^2): "< 10", "10-32", ..., ">= 316"."""
+        edges = [f"{e:.0f}" for e in self.area_edges_m2]
+        if not edges:
+            return ["all"]
+        return [f"< {edges[0]}", *(f"{a}-{b}" for a, b in itertools.pairwise(edges)), f">= {edges[-1]}"]
+
     def describe(self) -> str:
-        """The model in words, for a log line or the report."""
-        edges = ("0", *(f"{e:.0f}" for e in self.area_edges_m2), "")
-        classes = ", ".join(f"{1000 * t:.2f} mrad / {1000 * o:.1f} mm ({a}-{b} m^2)".replace("-)", "+)")
-                            for t, o, a, b in zip(self.departure_tilt_rad, self.departure_offset_m, edges[:-1],
-                                                  edges[1:], strict=True))
-        return (f"planes depart from their surfaces by {classes}; the trajectory's relative poses err "
+        """The model in words, for a log line."""
+        planes = ", ".join(f"{1000 * t:.1f} mrad / {1000 * o:.1f} mm ({c} m^2)" for c, t, o in
+                           zip(self.size_classes(), self.departure_tilt_rad, self.departure_offset_m, strict=True))
+        return (f"planes depart from their surfaces by {planes}; the trajectory's relative poses err "
                 f"{np.sqrt(self.prior_variance_factor):.2f} times as much as the drift model says")
 
 

@@ -226,12 +226,11 @@ def _drift_and_links(report: dict[str, Any]) -> str:
     ]
     model = links.get("model") or {}
     if model.get("estimated"):
-        edges = ["0", *(f"{e:.0f}" for e in model.get("area_edges_m2") or []), ""]
-        rows.append(("links' model, estimated (the a-priori one gave sigma0 "
-                     f"{_fmt(model.get('sigma0_a_priori'), 2)})",
-                     "; ".join(f"planes {edges[k]}-{edges[k + 1]} m\u00b2: {_fmt(t, 2)} mrad / {_fmt(o, 1)} mm"
-                               for k, (t, o) in enumerate(zip(model.get("departure_tilt_mrad") or [],
-                                                              model.get("departure_offset_mm") or [], strict=True)))
+        classes = [str(c).replace(">=", "\u2265") for c in model.get("size_classes_m2") or []]
+        rows.append((f"links' model, estimated (a-priori \u03c3\u2080 {_fmt(model.get('sigma0_a_priori'), 1)})",
+                     "; ".join(f"planes {c} m\u00b2: {_fmt(t, 1)} mrad / {_fmt(o, 1)} mm"
+                               for c, t, o in zip(classes, model.get("departure_tilt_mrad") or [],
+                                                  model.get("departure_offset_mm") or [], strict=True))
                      + f"; trajectory priors \u00d7{_fmt(model.get('prior_sigma_factor'), 2)}"))
     ranks = links.get("rank_histogram") or {}
     if ranks:
