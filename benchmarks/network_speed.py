@@ -62,7 +62,7 @@ def bench_links() -> dict:
         t_planes = time.perf_counter() - t0
     n_pairs = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), cfg.matching))
     t0 = time.perf_counter()
-    links = link_stations(stations, planes, cfg.matching, cfg.drift, cfg.pairwise)
+    links, _ = link_stations(stations, planes, cfg.matching, cfg.drift, cfg.pairwise)
     t_links = time.perf_counter() - t0
     return {"scans": len(stations), "points_per_scan": float(np.mean([s.n_points for s in stations])),
             "planes_ms_per_scan": 1000 * t_planes / len(stations), "candidate_pairs": n_pairs,

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import errno
+import json
 import logging
 import os
 import re
@@ -112,8 +113,9 @@ class Env:
 
 @pytest.fixture(scope="module")
 def base_run(tmp_path_factory: pytest.TempPathFactory) -> SyntheticRun:
-    # 12 s of trajectory (1201 rows, line 1 is the header) and 20,000 time-sorted points.
-    return write_synthetic_run(tmp_path_factory.mktemp("bad_inputs") / "run", n_points=20_000, duration_s=12.0)
+    # 12 s of trajectory (1201 rows, line 1 is the header) and 60,000 time-sorted points: enough
+    # for planes in windows of 2.5 s.
+    return write_synthetic_run(tmp_path_factory.mktemp("bad_inputs") / "run", n_points=60_000, duration_s=12.0)
 
 
 def _set_field(line: str, index: int, value: str) -> str:
@@ -653,7 +655,7 @@ def test_partial_time_overlap_warns_with_the_share_outside(
     share = 100.0 * outside / len(base_run.stamps_s)
     assert 35.0 < share < 45.0
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert any(str(base_run.cloud_path) in w and f"{outside} of 20000 points ({share:.1f} %)" in w
+    assert any(str(base_run.cloud_path) in w and f"{outside} of 60000 points ({share:.1f} %)" in w
                and "outside the trajectory's time range" in w for w in warnings), warnings
     assert f"{outside:,} ({share:.1f} %)" in stdout  # and the summary table repeats it
     assert out.exists()
@@ -808,10 +810,40 @@ def test_a_block_that_cannot_converge_is_exit_1_with_no_outputs_or_a_report_mark
     code, _, err = run_cli([*args, "--config", report_toml, "--resume"], capsys)
     lines = message_lines(err)
     assert code == 1
-    assert len(lines) == 1 and "report.json in" in lines[0] and "marked failed" in lines[0], err
-    assert sorted(p.name for p in result_files(out)) == ["report.html", "report.json"]
+    assert len(lines) == 1 and "report.html in" in lines[0] and "marked failed" in lines[0], err
+    assert sorted(p.name for p in result_files(out)) == ["links.csv", "planes.csv", "report.html", "report.json"]
     report = json.loads((out / "report.json").read_text())
     assert report["adjustment"]["status"] == "failed"
     assert report["adjustment"]["global_test_passed"] is False
     assert report["adjustment"]["failure"] == "no convergence after 1 iterations"
     assert "ADJUSTMENT FAILED" in (out / "report.html").read_text()
+
+
+def test_a_network_whose_links_all_fail_is_exit_1_never_a_result_of_sigma_zero(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # No pair of scans shares enough planes to link (as where every link fails its test): the
+    # block would be the trajectory alone, its redundancy 0 and every sigma 0.0 mm.
+    sample = Path(__file__).parent.parent / "sample_data"
+    config = tmp_path / "no_links.toml"
+    config.write_text("[matching]\nmin_matches = 60\n")
+    out = tmp_path / "out"
+    args = ["process", "-t", sample / "run_trajectory.txt", "-c", sample / "run_cloud.laz", "-o", out,
+            "--config", config]
+    code, _, err = run_cli(args, capsys)
+    lines = message_lines(err)
+    assert code == 1 and "Traceback" not in err
+    assert len(lines) == 1, err
+    assert "no plane link and no control point is left to check the trajectory" in lines[0], lines[0]
+    assert result_files(out) == []
+    # With on_failure = "report": the failure on the report's first line, the link graph, links.csv
+    # and planes.csv to see why, and no result.
+    config.write_text('[matching]\nmin_matches = 60\n[block]\non_failure = "report"\n')
+    code, _, err = run_cli([*args, "--resume"], capsys)
+    assert code == 1 and "Traceback" not in err, err
+    assert sorted(p.name for p in result_files(out)) == ["links.csv", "planes.csv", "report.html", "report.json"]
+    html = (out / "report.html").read_text()
+    assert html.index("ADJUSTMENT FAILED: no plane link") < html.index("<h2")
+    assert "Link graph" in html and "0.0 mm" not in html
+    report = json.loads((out / "report.json").read_text())
+    assert report["adjustment"]["status"] == "failed" and len(report["stations"]["rows"]) > 10

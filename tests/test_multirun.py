@@ -144,7 +144,7 @@ def test_corrected_cloud_and_trajectory_per_run(project: Path) -> None:
     out = project / "out"
     assert sorted(p.name for p in out.iterdir()) == sorted([
         ".kinreg-cache", "config.toml", "control_points.csv", "corrected_r1.laz", "corrected_r2.laz", "links.csv",
-        "report.html", "report.json", "sequence.e57", "stations.csv", "trajectory_corrected_r1.txt",
+        "planes.csv", "report.html", "report.json", "sequence.e57", "stations.csv", "trajectory_corrected_r1.txt",
         "trajectory_corrected_r2.txt", "figures"])
     for k in (1, 2):
         source = laspy.read(project / f"run{k}" / "run_cloud.laz")

@@ -30,8 +30,8 @@ def processed(tmp_path_factory):
 
 def test_all_outputs_are_written(processed):
     names = sorted(p.name for p in (processed / "out").iterdir())
-    assert names == sorted(["config.toml", "control_points.csv", "corrected.laz", "links.csv", "report.html",
-                            "report.json", "sequence.e57", "stations.csv", "trajectory_corrected.txt",
+    assert names == sorted(["config.toml", "control_points.csv", "corrected.laz", "links.csv", "planes.csv",
+                            "report.html", "report.json", "sequence.e57", "stations.csv", "trajectory_corrected.txt",
                             ".kinreg-cache",  # the stage cache, for --resume
                             "figures"])  # the report's images of the cloud
 

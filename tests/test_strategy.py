@@ -16,6 +16,7 @@ from kinreg.config import load_config
 from kinreg.errors import AdjustmentFailedError
 from kinreg.estimate.datum import build_network
 from kinreg.estimate.network import Network, link_pairs, station_pairs
+from kinreg.estimate.pairwise import LinkModel
 from kinreg.progress import NullProgress
 from kinreg.types import Link, ObservationKind, Plane, ScanKind, Station, Trajectory
 
@@ -66,13 +67,13 @@ class Recorder:
         self.calls.append(("slice", window_s, len(deskew_maps)))
         return self.sliced
 
-    def link_again(self, stations, planes, rates, adjusted, previous, velocity_cov) -> list[Link]:
+    def link_again(self, stations, planes, rates, adjusted, previous, velocity_cov) -> tuple[list[Link], LinkModel]:
         n = sum(call[0] == "link" for call in self.calls)
         self.calls.append(("link",))
         if self.relinked is not None:
-            return self.relinked[min(n, len(self.relinked) - 1)]
+            return self.relinked[min(n, len(self.relinked) - 1)], LinkModel()
         moved = [replace(s, T_obj_scan=adjusted.poses[k]) for k, s in enumerate(stations)]
-        return _links(moved, planes, self.config, loops=True)
+        return _links(moved, planes, self.config, loops=True), LinkModel()
 
     def pass_adjusted(self) -> None:
         self.calls.append(("adjusted",))

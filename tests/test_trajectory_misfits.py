@@ -95,7 +95,7 @@ def test_a_network_the_trajectory_disagrees_with_is_exit_1_or_a_report_marked_fa
     code, _, err = run_cli([*args, "--resume", "--config", tmp_path / "report.toml"], capsys)
     assert code == 1 and "marked failed" in message_lines(err)[0]
     assert "on_failure" not in message_lines(err)[0]  # no advice to set what is set
-    assert sorted(p.name for p in result_files(out)) == ["report.html", "report.json"]
+    assert sorted(p.name for p in result_files(out)) == ["links.csv", "planes.csv", "report.html", "report.json"]
     failed = json.loads((out / "report.json").read_text())["adjustment"]
     assert failed["status"] == "failed" and failed["failure"].startswith("the trajectory disagrees")
     assert "ADJUSTMENT FAILED" in (out / "report.html").read_text()

@@ -531,7 +531,8 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
     poses = _moved_poses(state[0], origin)
 
     sigma0 = float(np.sqrt(omega / redundancy)) if redundancy > 0 else float("nan")
-    failure = _failure(converged, iterations, poses, omega, redundancy, Qxx_blocks)
+    failure = _failure(converged, iterations, poses, omega, redundancy, Qxx_blocks,
+                       n > 1 and not np.any(active & np.isin(kinds, _CHECKING_KINDS)))
     passed = not failure and bool(redundancy <= 0 or omega <= chi2_quantile(1.0 - config.alpha, float(redundancy)))
     factor_scale = sigma0**2 if (not passed and np.isfinite(sigma0)) else 1.0
     cov_xi = np.zeros((n, 6, 6))
@@ -555,9 +556,17 @@ def _adjust_block(poses_initial: Pose, observations: list[RelativeObservation], 
     )
 
 
+# The kinds that check the trajectory: without one active the network is the trajectory itself.
+_CHECKING_KINDS = [k.value for k in (ObservationKind.PLANES, ObservationKind.POINT, *SCAN_PLANE_RANK)]
+# Below this redundancy nothing checks the network: its sigma0 and every sigma scaled by it mean nothing.
+_MIN_REDUNDANCY = 0.5
+
+
 def _failure(converged: bool, iterations: int, poses: Pose, omega: float, redundancy: float,
-             cov_blocks: FloatArray) -> str:
-    """Why the adjustment is not a result, in words; empty when it is one."""
+             cov_blocks: FloatArray, unchecked: bool = False) -> str:
+    """Why the adjustment is not a result, in words; empty when it is one. ``unchecked``: no
+    plane link, scan plane or control point is left in the network (every pairwise link rejected
+    or none found), so the result would be the trajectory itself."""
     if not converged:
         return f"no convergence after {iterations} iterations"
     if not (np.all(np.isfinite(poses.t_xyz)) and np.all(np.isfinite(poses.quat_wxyz))):
@@ -566,6 +575,11 @@ def _failure(converged: bool, iterations: int, poses: Pose, omega: float, redund
         return "non-finite residuals or covariances"
     if redundancy < -1e-6:
         return f"negative redundancy ({redundancy:.1f})"
+    if unchecked:
+        return ("no plane link and no control point is left to check the trajectory (every pairwise link was "
+                "rejected or none was found): the result would be the input")
+    if redundancy < _MIN_REDUNDANCY:
+        return f"redundancy {redundancy:.2g}: nothing checks the network, its sigmas would say nothing"
     return ""
 
 

@@ -310,7 +310,10 @@ def adjust_network(network: Network, rates: DriftRates, config: BlockConfig, pro
         if network.planes is not None and network.plane_nodes is not None:
             # the physical planes as nodes (after the controls: their indices stay)
             cov = network.velocity_cov
-            deformed = [with_window_deformation(p, s.T_obj_scan, rates, None if cov is None else cov[k])
+            # with the surfaces' departure the links measured (the planes' own covariances know only
+            # their points' noise)
+            deformed = [with_window_deformation(network.link_model.apply(p), s.T_obj_scan, rates,
+                                                None if cov is None else cov[k])
                         for k, (s, p) in enumerate(zip(network.stations, network.planes, strict=True))]
             extra, by_plane = plane_node_observations(network.initial_poses, deformed, network.plane_nodes,
                                                       extra_first(network.stations))

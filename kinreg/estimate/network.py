@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,7 +20,7 @@ from kinreg.config import DriftConfig, MatchingConfig, PairwiseConfig, StaticCon
 from kinreg.estimate.control import ControlTie, control_observations
 from kinreg.estimate.drift import DriftRates, drift_observation, window_bias_covariance
 from kinreg.estimate.matching import StationPlanes, candidate_pairs, match_planes
-from kinreg.estimate.pairwise import PairInput, adjust_pairs
+from kinreg.estimate.pairwise import LinkModel, PairInput, adjust_pairs
 from kinreg.estimate.plane_nodes import PlaneNodes
 from kinreg.geometry import Pose, pose_sigmas
 from kinreg.types import (
@@ -71,7 +71,7 @@ def _cross_run_pairs(positions: np.ndarray, runs: np.ndarray, quasi: np.ndarray,
 def link_pairs(
     pairs: Sequence[tuple[int, int]], stations: Mapping[int, Station], planes: Mapping[int, tuple[Plane, ...]],
     matching: MatchingConfig, drift: DriftConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
-    sigmas: Mapping[int, np.ndarray] | None = None,
+    sigmas: Mapping[int, np.ndarray] | None = None, model: LinkModel | None = None,
 ) -> list[Link | None]:
     """Match and adjust candidate pairs ``(i, j)`` of ``stations``; per pair its link, ``None``
     where too few planes match. Each station's planes are formed for matching once
@@ -80,12 +80,23 @@ def link_pairs(
     solve). The planes' covariances are expected to carry the drift inside their windows already
     (:func:`with_window_deformation`, as :func:`link_stations` passes them). A pair's prior is
     the stations' relative pose with ``hypot(sigmas[i], sigmas[j])`` (6,), by default the drift's
-    over their time difference."""
-    matchable = {k: StationPlanes(p) for k, p in planes.items()}
-    inputs = [_pair_input(i, j, stations[i], stations[j], matchable[i], matchable[j], matching, pairwise, static,
-                          None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
-    links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise))
+    over their time difference. ``model``: the observations' model the links measured
+    (:func:`~kinreg.estimate.pairwise.estimate_link_model`), where not the a-priori one."""
+    inputs = pair_inputs(pairs, stations, planes, matching, pairwise, static, sigmas)
+    links = iter(adjust_pairs([p for p in inputs if p is not None], drift, pairwise, model))
     return [None if p is None else next(links) for p in inputs]
+
+
+def pair_inputs(
+    pairs: Sequence[tuple[int, int]], stations: Mapping[int, Station], planes: Mapping[int, tuple[Plane, ...]],
+    matching: MatchingConfig, pairwise: PairwiseConfig, static: StaticConfig | None,
+    sigmas: Mapping[int, np.ndarray] | None = None,
+) -> list[PairInput | None]:
+    """The matches and prior of each pair of :func:`link_pairs`, ready to adjust; ``None`` where
+    too few planes match."""
+    matchable = {k: StationPlanes(p) for k, p in planes.items()}
+    return [_pair_input(i, j, stations[i], stations[j], matchable[i], matchable[j], matching, pairwise, static,
+                        None if sigmas is None else np.hypot(sigmas[i], sigmas[j])) for i, j in pairs]
 
 
 def _pair_input(
@@ -195,6 +206,9 @@ class Network:
     # planes as nodes of their own instead of the links (kinreg.estimate.plane_nodes)
     planes: tuple[tuple[Plane, ...], ...] | None = None
     plane_nodes: PlaneNodes | None = None  # ... and which of them are one physical plane
+    # the model of the planes and the trajectory the links were adjusted with (where the a-priori
+    # one did not fit them, kinreg.estimate.pairwise.estimate_link_model); the block's planes carry it too
+    link_model: LinkModel = field(default_factory=LinkModel)
 
     @property
     def initial_poses(self) -> Pose:
@@ -221,5 +235,5 @@ class Network:
         """The links the block observes: none where it adjusts the physical planes instead."""
         return self.links if self.plane_nodes is None else ()
 
-    def with_links(self, links: Sequence[Link]) -> Network:
-        return replace(self, links=tuple(links))
+    def with_links(self, links: Sequence[Link], model: LinkModel | None = None) -> Network:
+        return replace(self, links=tuple(links), link_model=self.link_model if model is None else model)

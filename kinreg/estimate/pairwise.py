@@ -22,9 +22,10 @@ instead of once per link.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -242,13 +243,17 @@ class PairInput:
 class _PairState:
     """A pair between rounds of data snooping: its prior and the matches still in."""
 
-    def __init__(self, pair: PairInput, drift: DriftConfig, config: PairwiseConfig):
+    def __init__(self, pair: PairInput, drift: DriftConfig, config: PairwiseConfig, model: LinkModel | None = None):
         self.pair = pair
         self.sigma_prior = drift_sigmas(abs(pair.dt_s), drift) if pair.sigma_prior is None else pair.sigma_prior
+        planes_i, planes_j = pair.planes_i, pair.planes_j
+        if model is not None and model.estimated:
+            self.sigma_prior = self.sigma_prior * np.sqrt(model.prior_variance_factor)
+            planes_i, planes_j = model.apply(planes_i), model.apply(planes_j)
         self.p_prior = 1.0 / self.sigma_prior**2
         self.R_prior, self.t_prior = pair.T_prior.rotation_matrix, pair.T_prior.t_xyz
-        self.by_id_i = {p.plane_id: p for p in pair.planes_i}
-        self.by_id_j = {p.plane_id: p for p in pair.planes_j}
+        self.by_id_i = {p.plane_id: p for p in planes_i}
+        self.by_id_j = {p.plane_id: p for p in planes_j}
         # A plane pair stated twice would make two identical conditions (a singular Q_ww).
         self.active = list({(m.plane_i, m.plane_j): m for m in pair.matches}.values())
         self.rejected: list[PlaneMatch] = []
@@ -262,11 +267,14 @@ class _PairState:
                     tuple(self.rejected), 0.0, p.dt_s)
 
 
-def adjust_pairs(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig) -> list[Link]:
+def adjust_pairs(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig,
+                 model: LinkModel | None = None) -> list[Link]:
     """:func:`adjust_pair` for many pairs at once, in their order: pairs with the same number of
     matches are solved together on stacked arrays, each with its own iterations and data
-    snooping, so each link is the one :func:`adjust_pair` gives (up to rounding)."""
-    states = [_PairState(pair, drift, config) for pair in pairs]
+    snooping, so each link is the one :func:`adjust_pair` gives (up to rounding). ``model``: the
+    observations' model the links measured (:func:`estimate_link_model`), where it is not the
+    a-priori one."""
+    states = [_PairState(pair, drift, config, model) for pair in pairs]
     links: list[Link | None] = [None if s.active else s.prior_only() for s in states]
     critical = chi2_quantile(1.0 - config.alpha, 3)
     pending = [k for k, s in enumerate(states) if s.active]
@@ -364,3 +372,222 @@ def adjust_pair(
     """
     return adjust_pairs([PairInput(scan_i, scan_j, planes_i, planes_j, T_prior, dt_s, matches, sigma_prior)],
                         drift, config)[0]
+
+
+# The a-priori model of the planes and the trajectory is kept where the links' pooled sigma0 is
+# within this factor of 1: no model of a real scanner is right to a few per cent, and a model
+# that fits is not re-estimated (the estimate would only add its own noise).
+MODEL_TOLERANCE = 1.1
+# A link whose own variance factor exceeds this multiple of the links' median is left out of the
+# pooled estimates (a wrong plane match, not the model: 3 times the median sigma0).
+_OUTLYING_LINK = 9.0
+_MODEL_ITERATIONS = 30
+# The planes' departure is estimated per size class: a large floor's tilt departs less than a
+# small patch's. The classes are half decades of area (1, 3.2, 10, 32, 100, 316 m^2, ...); a class
+# with fewer matched planes than this joins the next smaller one.
+_CLASS_EDGES_M2 = tuple(10.0 ** (k / 2) for k in range(8))
+_MIN_CLASS_PLANES = 30
+
+
+@dataclass(frozen=True)
+class LinkModel:
+    """What the links say of their observations' model, where the a-priori one does not fit them.
+
+    A plane fitted to a real surface errs by the surface's own departure from a plane (floors by
+    millimetres over metres, walls that bow, the quasi-static scan's own blur), which does not
+    shrink with the number of points: two scans see different parts of the surface and their
+    planes differ by it. It enters every plane as an additive covariance: a tilt about each
+    tangent and an offset at the plane's centroid, per size class of the planes (half decades of
+    area, ``area_edges_m2`` between the classes; ``departure_tilt_rad[k]``, ``departure_offset_m[k]`` of class k). The
+    trajectory's relative poses (the pairs' priors) may err by more than the drift model says:
+    their variances are multiplied by ``prior_variance_factor`` (never below 1). All are variance
+    components estimated over all links at once (:func:`estimate_link_model`).
+    ``sigma0_a_priori`` is the links' pooled sigma0 under the a-priori model, ``sigma0_estimated``
+    under this one; ``n_links`` the links pooled.
+    """
+
+    departure_tilt_rad: tuple[float, ...] = ()
+    departure_offset_m: tuple[float, ...] = ()
+    prior_variance_factor: float = 1.0
+    area_edges_m2: tuple[float, ...] = ()
+    sigma0_a_priori: float = float("nan")
+    sigma0_estimated: float = float("nan")
+    n_links: int = 0
+
+    @property
+    def estimated(self) -> bool:
+        """Whether the model differs from the a-priori one."""
+        return bool(any(v > 0.0 for v in (*self.departure_tilt_rad, *self.departure_offset_m))
+                    or self.prior_variance_factor > 1.0)
+
+    def size_class(self, plane: Plane) -> int:
+        return int(np.searchsorted(self.area_edges_m2, plane.area_m2))
+
+    def departure_cov(self, plane: Plane) -> FloatArray:
+        """The departure's covariance of ``plane``'s (tilt u, tilt v, d)."""
+        k = self.size_class(plane)
+        return _departure_cov(plane, self.departure_tilt_rad[k] ** 2, self.departure_offset_m[k] ** 2)
+
+    def apply(self, planes: Sequence[Plane]) -> tuple[Plane, ...]:
+        """``planes`` with the departure added to their covariances."""
+        if not self.departure_tilt_rad:
+            return tuple(planes)
+        return tuple(replace(p, cov_uvd=p.cov_uvd + self.departure_cov(p)) for p in planes)
+
+    def as_dict(self) -> dict[str, object]:
+        def finite(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {"estimated": self.estimated, "n_links": self.n_links,
+                "sigma0_a_priori": finite(self.sigma0_a_priori), "sigma0_estimated": finite(self.sigma0_estimated),
+                "area_edges_m2": list(self.area_edges_m2),
+                "size_classes_m2": self.size_classes() if self.departure_tilt_rad else [],
+                "departure_tilt_mrad": [1000.0 * v for v in self.departure_tilt_rad],
+                "departure_offset_mm": [1000.0 * v for v in self.departure_offset_m],
+                "prior_sigma_factor": float(np.sqrt(self.prior_variance_factor))}
+
+    def size_classes(self) -> list[str]:
+        """The size classes' names (areas in m^2): "< 10", "10-32", ..., ">= 316"."""
+        edges = [f"{e:.0f}" for e in self.area_edges_m2]
+        if not edges:
+            return ["all"]
+        return [f"< {edges[0]}", *(f"{a}-{b}" for a, b in itertools.pairwise(edges)), f">= {edges[-1]}"]
+
+    def describe(self) -> str:
+        """The model in words, for a log line."""
+        planes = ", ".join(f"{1000 * t:.1f} mrad / {1000 * o:.1f} mm ({c} m^2)" for c, t, o in
+                           zip(self.size_classes(), self.departure_tilt_rad, self.departure_offset_m, strict=True))
+        return (f"planes depart from their surfaces by {planes}; the trajectory's relative poses err "
+                f"{np.sqrt(self.prior_variance_factor):.2f} times as much as the drift model says")
+
+
+def _departure_cov(plane: Plane, var_tilt: float, var_offset: float) -> FloatArray:
+    """(tilt u, tilt v, d) of a departure by ``var_tilt`` about each tangent and ``var_offset`` at
+    the centroid: ``d = e_c + (u.c) a + (v.c) b``."""
+    J = np.eye(3)
+    J[2, :2] = plane.basis_uv @ plane.centroid_xyz
+    return J @ np.diag([var_tilt, var_tilt, var_offset]) @ J.T
+
+
+def pooled_sigma0(links: Sequence[Link]) -> tuple[float, int]:
+    """The links' pooled sigma0 (sqrt of the sum of their weighted squared residuals over the sum
+    of their redundancies), links far beyond the median left out (:data:`_OUTLYING_LINK`), and
+    the number pooled. NaN without a link that has planes."""
+    with_planes = [link for link in links if link.redundancy > 0 and np.isfinite(link.sigma0)]
+    if not with_planes:
+        return float("nan"), 0
+    f = np.array([link.sigma0**2 for link in with_planes])
+    r = np.array([link.redundancy for link in with_planes], dtype=float)
+    keep = f <= _OUTLYING_LINK * max(float(np.median(f)), 1e-12)
+    return float(np.sqrt(np.sum(f[keep] * r[keep]) / np.sum(r[keep]))), int(keep.sum())
+
+
+def _area_edges(states: Sequence[_PairState]) -> tuple[float, ...]:
+    """The edges between the size classes of the matched planes (:data:`_CLASS_EDGES_M2`), each
+    class holding at least :data:`_MIN_CLASS_PLANES` of them where there are that many."""
+    areas = np.array([p.area_m2 for s in states for m in s.active
+                      for p in (s.by_id_i[m.plane_i], s.by_id_j[m.plane_j])])
+    edges = [e for e in _CLASS_EDGES_M2 if areas.min() < e < areas.max()]
+    while edges:
+        counts = np.bincount(np.searchsorted(edges, areas), minlength=len(edges) + 1)
+        sparse = np.flatnonzero(counts < _MIN_CLASS_PLANES)
+        if not len(sparse):
+            break
+        k = int(sparse[-1])  # the largest sparse class joins the next smaller one (the first: the next larger)
+        del edges[max(k - 1, 0)]
+    return tuple(edges)
+
+
+def estimate_link_model(pairs: Sequence[PairInput], drift: DriftConfig, config: PairwiseConfig,
+                        start_tilt_rad: float = 1e-4, start_offset_m: float = 3e-4) -> LinkModel:
+    """The observations' model that the links of ``pairs`` fit, estimated from all of them
+    before any link is tested: the planes' departure from a plane (tilt, offset; additive; per
+    size class) and a factor of the priors' variances, as variance components (Foerstner's
+    iteration: each component scaled by its share of the weighted squared residuals over its
+    share of the redundancy, ``e^T W C_k W e / tr(W C_k W Q_ee)``, pooled over the links; links far
+    beyond the median left out, :data:`_OUTLYING_LINK`). The additive components start from
+    ``start_tilt_rad`` and ``start_offset_m`` and stay positive; the prior's factor is not taken
+    below 1. Returns the a-priori model (nothing estimated) where the links fit it within
+    :data:`MODEL_TOLERANCE`."""
+    states = [_PairState(pair, drift, config) for pair in pairs if pair.matches]
+    if not states:
+        return LinkModel()
+    edges = _area_edges(states)
+    n_classes = len(edges) + 1
+    var = np.array([start_tilt_rad**2] * n_classes + [start_offset_m**2] * n_classes)
+    factor = 1.0
+    sigma0_prior = float("nan")
+    for iteration in range(_MODEL_ITERATIONS + 1):
+        model = LinkModel(tuple(np.sqrt(var[:n_classes])), tuple(np.sqrt(var[n_classes:])), factor, edges)
+        sums = _component_sums([_PairState(s.pair, drift, config, model if iteration else None) for s in states],
+                               config, model)
+        f = sums[:, 0] / np.maximum(sums[:, 1], 1e-12)  # each link's own variance factor
+        keep = f <= _OUTLYING_LINK * max(float(np.median(f)), 1e-12)
+        total = sums[keep].sum(axis=0)
+        sigma0 = float(np.sqrt(total[0] / total[1]))
+        if iteration == 0:
+            sigma0_prior = sigma0
+            if sigma0 <= MODEL_TOLERANCE:
+                return LinkModel(sigma0_a_priori=sigma0, sigma0_estimated=sigma0, n_links=int(keep.sum()))
+            continue
+        q, r = total[2::2], np.maximum(total[3::2], 1e-12)  # per component: tilt, offset per class; the prior
+        new_var = var * q[:-1] / r[:-1]
+        new_factor = max(1.0, factor * q[-1] / r[-1])
+        moved = float(np.max(np.abs(np.log(np.maximum(np.append(new_var, new_factor), 1e-30)
+                                           / np.maximum(np.append(var, factor), 1e-30)))))
+        var, factor = new_var, new_factor
+        if moved < 0.01:
+            break
+    model = LinkModel(tuple(float(v) for v in np.sqrt(var[:n_classes])),
+                      tuple(float(v) for v in np.sqrt(var[n_classes:])), float(factor), edges, sigma0_prior, sigma0,
+                      int(keep.sum()))
+    log.warning("the links do not fit the a-priori model of the planes and the trajectory (pooled sigma0 %.2f over "
+                "%d links); estimated from them: %s", sigma0_prior, model.n_links, model.describe())
+    return model
+
+
+def _component_sums(states: list[_PairState], config: PairwiseConfig, model: LinkModel) -> FloatArray:
+    """Per pair (in order): its weighted squared residuals and redundancy, then for each
+    component of ``model`` (tilt and offset departure per size class, the prior) its share of
+    both: (n, 2 + 2 (2 C + 1)) for C size classes."""
+    n_classes = len(model.area_edges_m2) + 1
+    out = np.zeros((len(states), 2 + 2 * (2 * n_classes + 1)))
+    groups: dict[int, list[int]] = {}
+    for k, s in enumerate(states):
+        groups.setdefault(len(s.active), []).append(k)
+    for members in groups.values():
+        design = _Design([states[k] for k in members])
+        sol = _solve(design, config.max_iterations)
+        W = _pinv_symmetric(design.linearise(sol["R"], sol["t"])[2])
+        We = np.einsum("gij,gj->gi", W, sol["w"])
+        WQ = W @ sol["Q_ee"]
+        part = [states[k] for k in members]
+        for c in range(2 * n_classes):
+            C = _component_q_ww(design, sol, part, model, c % n_classes, c < n_classes)
+            out[members, 2 + 2 * c] = np.einsum("gi,gij,gj->g", We, C, We)
+            out[members, 3 + 2 * c] = np.einsum("gij,gji->g", W @ C, WQ)
+        P = design.p_prior
+        out[members, -2] = np.einsum("gi,gi,gi->g", sol["xi"], P, sol["xi"])
+        out[members, -1] = 6.0 - np.einsum("gi,gii->g", P, sol["Q_xx"])
+        out[members, 0] = sol["omega"]
+        out[members, 1] = 3.0 * np.array([len(s.active) for s in part])
+    return out
+
+
+def _component_q_ww(design: _Design, sol: dict, part: list[_PairState], model: LinkModel, size_class: int,
+                    tilt: bool) -> FloatArray:
+    """The conditions' covariance (g, 3m, 3m) from one departure component of unit size (the tilt
+    or the offset of one size class) on the planes of that class, at the solution."""
+    var_t, var_o = (1.0, 0.0) if tilt else (0.0, 1.0)
+
+    def cov(p: Plane) -> FloatArray:
+        return _departure_cov(p, var_t, var_o) if model.size_class(p) == size_class else np.zeros((3, 3))
+
+    shape = design.cov_a.shape
+    cov_a, cov_b = design.cov_a, design.cov_b
+    try:
+        design.cov_a = np.array([cov(s.by_id_i[m.plane_i]) for s in part for m in s.active]).reshape(shape)
+        design.cov_b = np.array([cov(s.by_id_j[m.plane_j]) for s in part for m in s.active]).reshape(shape)
+        return design.linearise(sol["R"], sol["t"])[2]
+    finally:
+        design.cov_a, design.cov_b = cov_a, cov_b

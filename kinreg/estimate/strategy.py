@@ -45,6 +45,7 @@ from kinreg.estimate.drift import (
     with_window_bias,
 )
 from kinreg.estimate.network import Network
+from kinreg.estimate.pairwise import LinkModel
 from kinreg.estimate.plane_nodes import plane_clusters
 from kinreg.estimate.slicing import shorter_window_s, window_smear_m
 from kinreg.estimate.snooping import misfit_text, models_rejected, trajectory_misfits, wrong_match_misfits
@@ -90,9 +91,10 @@ S = TypeVar("S", bound=SlicedNetwork)
 
 # link_again(stations, planes, rates, adjusted, previous, velocity_cov): every candidate pair linked
 # again from the poses of ``adjusted``, the planes' window deformation by ``rates``; a ``previous``
-# link whose prior hardly moved is kept (kinreg.run.link_stage.link_stations).
+# link whose prior hardly moved is kept (kinreg.run.link_stage.link_stations); with the model of the
+# planes and the trajectory they were adjusted with (kinreg.estimate.pairwise.LinkModel).
 LinkAgain = Callable[[Sequence[Station], Sequence[tuple[Plane, ...]], DriftRates, BlockResult, Sequence[Link],
-                      np.ndarray | None], list[Link]]
+                      np.ndarray | None], tuple[list[Link], LinkModel]]
 
 
 @dataclass(frozen=True)
@@ -342,13 +344,13 @@ def _settled_rounds(network: Network, planes: list[tuple[Plane, ...]], operation
             velocity_cov = window_velocity_covariance(network.stations, result, rates) if sheared else None
         else:
             deskewed, sheared, velocity_cov = planes, False, points_deskewed
-        links = operations.link_again(network.stations, deskewed if sheared else planes, rates, result,
-                                      () if faster or sheared else network.links, velocity_cov)
+        links, model = operations.link_again(network.stations, deskewed if sheared else planes, rates, result,
+                                             () if faster or sheared else network.links, velocity_cov)
         linked_with = rates if faster else linked_with
         used_planes = deskewed if sheared else planes
         same = _linked_pairs(links) == _linked_pairs(network.links)
         log.info("linked again from the adjusted poses: %d links (were %d)", len(links), len(network.links))
-        network = replace(network.with_links(links), velocity_cov=velocity_cov)
+        network = replace(network.with_links(links, model), velocity_cov=velocity_cov)
         if round_ == 0 and (sheared or points_deskewed is not None) and config.drift.measure_correlation:
             correlation = _correlation_of_deskewed(network, result, rates, prior_rates, config, progress)
             rates = replace(rates, correlation_s=correlation)

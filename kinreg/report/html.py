@@ -224,6 +224,14 @@ def _drift_and_links(report: dict[str, Any]) -> str:
         ("plane matches (rejected)", f"{_count(links.get('n_matches'))} "
                                      f"({_count(links.get('n_rejected_matches'))})"),
     ]
+    model = links.get("model") or {}
+    if model.get("estimated"):
+        classes = [str(c).replace(">=", "\u2265") for c in model.get("size_classes_m2") or []]
+        rows.append((f"links' model, estimated (a-priori \u03c3\u2080 {_fmt(model.get('sigma0_a_priori'), 1)})",
+                     "; ".join(f"planes {c} m\u00b2: {_fmt(t, 1)} mrad / {_fmt(o, 1)} mm"
+                               for c, t, o in zip(classes, model.get("departure_tilt_mrad") or [],
+                                                  model.get("departure_offset_mm") or [], strict=True))
+                     + f"; trajectory priors \u00d7{_fmt(model.get('prior_sigma_factor'), 2)}"))
     ranks = links.get("rank_histogram") or {}
     if ranks:
         rows.append(("links by rank", ", ".join(f"{k}: {_count(v)}" for k, v in ranks.items() if v)))

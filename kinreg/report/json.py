@@ -154,6 +154,8 @@ def build_report(
             "n_rejected_matches": int(sum(len(link.rejected) for link in links)),
             "rank_histogram": {str(r): sum(link.rank == r for link in links) for r in range(7)},
             "pairs": [[link.scan_i, link.scan_j, link.status.value] for link in links],
+            # the model of the planes and the trajectory the links were adjusted with
+            "model": network.link_model.as_dict(),
         },
         "timings_s": timings_s,
         "trajectory_plot": trajectory_plot,
@@ -175,10 +177,12 @@ def _status(result: BlockResult) -> str:
 
 
 def build_failure_report(*, inputs: dict[str, Any], config_toml: str, result: BlockResult, datum: str,
-                         alpha: float) -> dict[str, Any]:
-    """``report.json`` of a run whose block adjustment failed: what went in and why it failed;
-    no stations, links or corrections (none of them is a result)."""
-    return {
+                         alpha: float, network: Network | None = None,
+                         planes: Sequence[tuple[Plane, ...]] | None = None) -> dict[str, Any]:
+    """``report.json`` of a run whose block adjustment failed: what went in and why it failed,
+    and with the ``network`` what a user needs to see why: its links (each with its status) and
+    the stations at the trajectory's poses (not adjusted: none of them is a result)."""
+    report: dict[str, Any] = {
         "schema_version": REPORT_SCHEMA_VERSION,
         "kinreg_version": __version__,
         "inputs": inputs,
@@ -188,6 +192,25 @@ def build_failure_report(*, inputs: dict[str, Any], config_toml: str, result: Bl
                        "global_test_passed": False, "iterations": result.iterations,
                        "n_observations": len(result.tests)},
     }
+    if network is not None:
+        links = network.links
+        n_links = np.zeros(len(network.stations), dtype=int)
+        for link in links:
+            if link.status is LinkStatus.OK:
+                n_links[[link.scan_i, link.scan_j]] += 1
+        report["stations"] = {"n": len(network.stations), "poses": "the trajectory's (not adjusted)", "rows": [
+            {"station": s.name, "kind": s.kind.value, "x": float(s.T_obj_scan.t_xyz[0]),
+             "y": float(s.T_obj_scan.t_xyz[1]), "z": float(s.T_obj_scan.t_xyz[2]),
+             "n_planes": len(planes[k]) if planes is not None else None, "n_links": int(n_links[k])}
+            for k, s in enumerate(network.stations)]}
+        report["links"] = {
+            "n_links": len(links),
+            "by_status": {st.value: sum(link.status is st for link in links) for st in LinkStatus},
+            "sigma0": _stats(np.array([link.sigma0 for link in links if np.isfinite(link.sigma0)])),
+            "pairs": [[link.scan_i, link.scan_j, link.status.value] for link in links],
+            "model": network.link_model.as_dict(),
+        }
+    return report
 
 
 def _json_default(value: Any) -> Any:

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from kinreg.estimate.pairwise import LinkModel
 from kinreg.geometry import Pose
 from kinreg.run.stage_cache import Arrays
 from kinreg.types import Link, LinkStatus, Plane, PlaneMatch, ScanKind, ScanWindow, Station
@@ -132,6 +133,25 @@ def links_from_arrays(a: Mapping[str, np.ndarray]) -> list[Link]:
              float(a["max_normalised_residual"][k]), float(a["dt_s"][k]))
         for k in range(len(a["scan_ij"]))
     ]
+
+
+def link_model_to_arrays(model: LinkModel) -> Arrays:
+    """The model the links were adjusted with (:class:`~kinreg.estimate.pairwise.LinkModel`) as
+    plain arrays, beside the links' own."""
+    return {"model_tilt_rad": np.array(model.departure_tilt_rad, dtype=np.float64),
+            "model_offset_m": np.array(model.departure_offset_m, dtype=np.float64),
+            "model_area_edges_m2": np.array(model.area_edges_m2, dtype=np.float64),
+            "model_figures": np.array([model.prior_variance_factor, model.sigma0_a_priori, model.sigma0_estimated,
+                                       model.n_links], dtype=np.float64)}
+
+
+def link_model_from_arrays(a: Mapping[str, np.ndarray]) -> LinkModel:
+    """Inverse of :func:`link_model_to_arrays` (the a-priori model where the arrays have none)."""
+    if "model_figures" not in a:
+        return LinkModel()
+    factor, s0_prior, s0, n = (float(v) for v in a["model_figures"])
+    return LinkModel(tuple(float(v) for v in a["model_tilt_rad"]), tuple(float(v) for v in a["model_offset_m"]),
+                     factor, tuple(float(v) for v in a["model_area_edges_m2"]), s0_prior, s0, int(n))
 
 
 def stations_to_arrays(stations: Sequence[Station]) -> Arrays:

@@ -18,6 +18,7 @@ from kinreg.estimate.correction import DriftCorrection
 from kinreg.estimate.datum import build_network
 from kinreg.estimate.drift import DriftRates, WindowMap
 from kinreg.estimate.network import Network
+from kinreg.estimate.pairwise import LinkModel
 from kinreg.estimate.strategy import (
     AdjustedNetwork,
     Estimate,
@@ -100,11 +101,11 @@ def estimate(run: RunContext) -> Estimated:
     except AdjustmentFailedError as e:
         last = on_run.last
         assert last is not None  # an adjustment fails only once a slicing is there
-        fail_adjustment(e.result, last.network, last.config, run.folder, _report_inputs(run, last))
+        fail_adjustment(e.result, last.network, last.config, run.folder, _report_inputs(run, last), last.planes)
     if chosen.failure:
         failed = dataclasses.replace(chosen.adjusted.result, failure=chosen.failure)
         fail_adjustment(failed, chosen.adjusted.network, chosen.sliced.config, run.folder,
-                        _report_inputs(run, chosen.sliced))
+                        _report_inputs(run, chosen.sliced), chosen.sliced.planes)
     return Estimated(chosen)
 
 
@@ -141,15 +142,18 @@ class _RunOperations:
                                                               config.planes, run.progress, run.folder)
         stations, planes = kinematic.stations + static_stations, kinematic.planes + static_planes
         run.clock.lap("planes")
-        links = link_stations_cached(stations, planes, config, self.static, run.progress, run.executor, run.folder)
+        links, model = link_stations_cached(stations, planes, config, self.static, run.progress, run.executor,
+                                            run.folder)
         run.clock.lap("link")
         controls = () if control is None else tie_points(control, stations, kinematic.trajectories, config.control)
-        network = build_network(stations, planes, links, references, self.static, config, controls)
+        network = dataclasses.replace(build_network(stations, planes, links, references, self.static, config, controls),
+                          link_model=model)
         self.last = RunSlicing(config, sliced, kinematic, stations, planes, network)
         return self.last
 
     def link_again(self, stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], rates: DriftRates,
-                   adjusted: BlockResult, previous: Sequence[Link], velocity_cov: np.ndarray | None) -> list[Link]:
+                   adjusted: BlockResult, previous: Sequence[Link],
+                   velocity_cov: np.ndarray | None) -> tuple[list[Link], LinkModel]:
         """Every candidate pair linked again from the ``adjusted`` poses, on the executor."""
         config = self.run.config
         return link_stations(stations, planes, config.matching, config.drift, config.pairwise, self.run.progress,

@@ -11,10 +11,11 @@ import numpy as np
 
 from kinreg.config import DriftConfig, KinregConfig, MatchingConfig, PairwiseConfig, StaticConfig
 from kinreg.estimate.drift import DriftRates, with_window_deformation
-from kinreg.estimate.network import link_pairs, station_pairs
+from kinreg.estimate.network import link_pairs, pair_inputs, station_pairs
+from kinreg.estimate.pairwise import MODEL_TOLERANCE, LinkModel, estimate_link_model, pooled_sigma0
 from kinreg.geometry import pose_sigmas
 from kinreg.progress import NullProgress, Progress
-from kinreg.run.codecs import links_from_arrays, links_to_arrays
+from kinreg.run.codecs import link_model_from_arrays, link_model_to_arrays, links_from_arrays, links_to_arrays
 from kinreg.run.executor import ExecutorContext, in_process, parallel_map
 from kinreg.run.output_folder import RunCache, content_parts
 from kinreg.types import BlockResult, Link, LinkStatus, Plane, Station
@@ -24,7 +25,7 @@ log = logging.getLogger(__name__)
 
 def link_stations_cached(stations: list[Station], planes: list[tuple[Plane, ...]], config: KinregConfig,
                          static: StaticConfig | None, progress: Progress, executor: ExecutorContext,
-                         run: RunCache) -> list[Link]:
+                         run: RunCache) -> tuple[list[Link], LinkModel]:
     """:func:`~kinreg.estimate.network.link_stations` through the stage cache, keyed by the stations and
     planes themselves (so also by anything that moved them, e.g. ``[initial_transform]``) and
     ``[matching]``, ``[drift]``, ``[pairwise]``, ``[static]``."""
@@ -40,12 +41,12 @@ def link_stations_cached(stations: list[Station], planes: list[tuple[Plane, ...]
     if entry is not None:
         run.count("link", reused=1)
         log.info("link: the pairwise links are re-used from the stage cache")
-        return links_from_arrays(entry.arrays)
-    links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
-                          executor, loops=loops)
-    run.store("link", key, links_to_arrays(links))
+        return links_from_arrays(entry.arrays), link_model_from_arrays(entry.arrays)
+    links, model = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress, static,
+                                 executor, loops=loops)
+    run.store("link", key, {**links_to_arrays(links), **link_model_to_arrays(model)})
     run.count("link", computed=1)
-    return links
+    return links, model
 
 
 _PAIRS_PER_TASK = 64
@@ -54,8 +55,8 @@ _TILE = 8  # stations: see link_stations
 
 def _link_batch(task: tuple) -> list[Link | None]:
     """A batch of pairs (a top-level function: it runs on worker processes)."""
-    pairs, stations, planes, (matching, drift, pairwise, static), sigmas = task
-    return link_pairs(pairs, stations, planes, matching, drift, pairwise, static, sigmas)
+    pairs, stations, planes, (matching, drift, pairwise, static, model), sigmas = task
+    return link_pairs(pairs, stations, planes, matching, drift, pairwise, static, sigmas, model)
 
 
 def link_stations(
@@ -72,7 +73,7 @@ def link_stations(
     previous: Sequence[Link] = (),
     loops: bool = True,
     velocity_cov: np.ndarray | None = None,
-) -> list[Link]:
+) -> tuple[list[Link], LinkModel]:
     """Pairwise links over all candidate pairs (see :func:`station_pairs`), on ``executor`` in
     batches (in this process without one). ``planes[k]`` are the planes of ``stations[k]``. Pairs
     with fewer than ``matching.min_matches`` plane matches are not linked. A pair with a static
@@ -84,7 +85,12 @@ def link_stations(
     floors), so that loop closures across an accumulated drift come within the gates.
     A ``previous`` link of a pair whose prior the adjustment moved by less than a tenth of the
     matching gates is kept as it is (matching it again would find the same planes).
-    Returns the links in pair order, whatever the number of workers.
+    Where the links do not fit the a-priori model of their planes and the trajectory (real
+    surfaces are not planes; :data:`~kinreg.estimate.pairwise.MODEL_TOLERANCE`), the model is
+    estimated from all of them (:func:`~kinreg.estimate.pairwise.estimate_link_model`) and every
+    pair linked again with it, before a link is tested against a model it cannot fit.
+    Returns the links in pair order, whatever the number of workers, and the model they were
+    adjusted with.
     """
     progress = progress or NullProgress()
     rates = rates or DriftRates.from_config(drift)
@@ -104,7 +110,27 @@ def link_stations(
     # Once per station, not once per pair: matching does not look at the covariances.
     planes = [with_window_deformation(p, s.T_obj_scan, rates, None if velocity_cov is None else velocity_cov[k])
               for k, (s, p) in enumerate(zip(stations, planes, strict=True))]
-    configs = (matching, drift, pairwise, static)
+    links = _link_todo(todo, pairs, kept, stations, planes, sigmas, (matching, drift, pairwise, static, None),
+                       progress, executor)
+    model = LinkModel()
+    sigma0, n_pooled = pooled_sigma0([link for link in links if link.status is not LinkStatus.PRIOR_ONLY])
+    if n_pooled and sigma0 > MODEL_TOLERANCE:
+        inputs = pair_inputs(todo, dict(enumerate(stations)), dict(enumerate(planes)), matching, pairwise, static,
+                             None if sigmas is None else dict(enumerate(sigmas)))
+        model = estimate_link_model([p for p in inputs if p is not None], drift, pairwise)
+        if model.estimated:
+            links = _link_todo(todo, pairs, kept, stations, planes, sigmas,
+                               (matching, drift, pairwise, static, model), progress, executor)
+    n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
+    log.info("%d candidate pairs, %d links (%d rejected, %d kept)", len(pairs), len(links), n_rejected, len(kept))
+    return links, model
+
+
+def _link_todo(todo: list[tuple[int, int]], pairs: Sequence[tuple[int, int]], kept: dict[tuple[int, int], Link],
+               stations: Sequence[Station], planes: Sequence[tuple[Plane, ...]], sigmas: np.ndarray | None,
+               configs: tuple, progress: Progress, executor: ExecutorContext | None) -> list[Link]:
+    """The links of the pairs ``todo`` on ``executor`` in batches, with the ``kept`` ones, in the
+    order of ``pairs``."""
     # Each task carries the stations and planes of its own pairs: pairs taken tile by tile of the
     # station indices (sequence neighbours and loop closures fall in few tiles) ship a station to
     # fewer tasks (at seed scale 25 stations a task instead of 65, 2.5x fewer bytes to pickle).
@@ -121,10 +147,7 @@ def link_stations(
     results = parallel_map(_link_batch, (task(b) for b in batches), executor or in_process(), progress)
     progress.finish()
     found = {(link.scan_i, link.scan_j): link for batch in results for link in batch if link is not None}
-    links = [found.get(pair) or kept[pair] for pair in pairs if pair in found or pair in kept]
-    n_rejected = sum(link.status is LinkStatus.REJECTED for link in links)
-    log.info("%d candidate pairs, %d links (%d rejected, %d kept)", len(pairs), len(links), n_rejected, len(kept))
-    return links
+    return [found.get(pair) or kept[pair] for pair in pairs if pair in found or pair in kept]
 
 
 def _unmoved_links(previous: Sequence[Link], pairs: Sequence[tuple[int, int]], initial: Sequence[Station],

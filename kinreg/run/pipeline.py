@@ -148,7 +148,7 @@ class ProcessSummary:
 
 
 OUTPUT_FILES = ("stations.csv", "links.csv", "trajectory_corrected.txt", "corrected.laz", "sequence.e57",
-                "report.json", "report.html", "config.toml", "control_points.csv")
+                "report.json", "report.html", "config.toml", "control_points.csv", "planes.csv")
 
 
 @contextlib.contextmanager
@@ -199,8 +199,8 @@ def link_to_folder(
         stations, planes = detect_all_planes(sequence, config.planes, progress, executor, trajectory)
         seconds["planes"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        links = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress,
-                              executor=executor)
+        links, _ = link_stations(stations, planes, config.matching, config.drift, config.pairwise, progress,
+                                 executor=executor)
         seconds["link"] = time.perf_counter() - t0
     n_candidates = len(candidate_pairs(np.array([s.T_obj_scan.t_xyz for s in stations]), config.matching))
     write_text(out / "planes.csv", format_planes_csv(stations, planes), overwrite=overwrite)

@@ -19,7 +19,14 @@ from kinreg.estimate.network import Network, station_pairs
 from kinreg.report.control import check_section, control_section, format_control_points_csv
 from kinreg.report.html import render_html
 from kinreg.report.json import build_report, write_report_json
-from kinreg.report.tables import format_links_csv, format_stations_csv, links_table, stations_table, write_text
+from kinreg.report.tables import (
+    format_links_csv,
+    format_planes_csv,
+    format_stations_csv,
+    links_table,
+    stations_table,
+    write_text,
+)
 from kinreg.run.context import RunContext
 from kinreg.run.estimation import Estimated
 from kinreg.run.large_outputs import WrittenOutputs
@@ -75,11 +82,13 @@ def process_report(run: RunContext, results: ProcessResults) -> dict[str, Any]:
 
 def write_tables(out: Path, report: dict[str, Any], network: Network, result: BlockResult,
                  planes: Sequence[tuple[Plane, ...]], figures_dir: Path | None = None) -> None:
-    """``stations.csv``, ``links.csv``, ``config.toml`` and ``report.html`` (``report.json`` is
-    written last); the report's images are read from ``figures_dir`` (default ``out``)."""
+    """``stations.csv``, ``links.csv``, ``planes.csv``, ``config.toml`` and ``report.html``
+    (``report.json`` is written last); the report's images are read from ``figures_dir`` (default
+    ``out``)."""
     rows = stations_table(network.stations, result, planes, network.links)
     write_text(out / "stations.csv", format_stations_csv(rows))
     write_text(out / "links.csv", format_links_csv(links_table(network.links, result, network.plane_nodes)))
+    write_text(out / "planes.csv", format_planes_csv(network.stations, planes))
     write_text(out / "config.toml", report["config_toml"])
     write_text(out / "report.html", render_html(report, base_dir=figures_dir or out))
     # always written (only its header without --control/--check): every name in OUTPUT_FILES is
