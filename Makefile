@@ -24,7 +24,7 @@ demo: setup
 	$(BIN)/kinreg info sample_data/run_cloud.laz
 	$(BIN)/kinreg process --trajectory sample_data/run_trajectory.txt --cloud sample_data/run_cloud.laz \
 		--out $(OUT) --overwrite
-	@echo "demo output in $(OUT): stations.csv links.csv trajectory_corrected.txt corrected.laz sequence.e57 report.json report.html"
+	@echo "demo output in $(OUT): stations.csv links.csv planes.csv trajectory_corrected.txt corrected.laz sequence.e57 report.json report.html"
 
 test: setup
 	$(BIN)/python -m pytest -m "not slow" -q
