@@ -285,8 +285,9 @@ def main() -> None:
     intensity = np.concatenate(hall.intensity)
     print(f"real hall: {len(hall.stamps_s)} keyframes, {len(p_world):,} points, "
           f"{ref.stamps_s[-1] - ref.stamps_s[0]:.1f} s", flush=True)
+    # seed by seed: the first seed's whole matrix before the next
     cases = [dict(model=m, pos_m=MAGNITUDES[g][0], rot_deg=MAGNITUDES[g][1], seed=s)
-             for g in args.magnitudes for m in args.models for s in args.seeds]
+             for s in args.seeds for g in args.magnitudes for m in args.models]
     if args.command == "export":
         for c in cases:
             folder = args.work / f"{c['model']}_{c['pos_m']}_{c['seed']}"
@@ -295,9 +296,13 @@ def main() -> None:
         return
     origin = p_world.min(axis=0)
     ref_moments = moments_of([p_world], origin)
-    results = []
     args.results.parent.mkdir(parents=True, exist_ok=True)
+    # the runs of an earlier, interrupted call with the same cases are kept, not run again
+    results = json.loads(args.results.read_text())["cases"] if args.results.exists() else []
+    done = {(r["model"], r["pos_m"], r["seed"]) for r in results}
     for c in cases:
+        if (c["model"], c["pos_m"], c["seed"]) in done:
+            continue
         r = run_one(c, hall, ref, times, p_world, intensity, ref_moments, origin, args.work, args.config, args.keep)
         results.append(r)
         print(json.dumps(r), flush=True)
