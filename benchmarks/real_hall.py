@@ -252,6 +252,7 @@ def run_one(case: dict, hall: Hall, ref: Trajectory, times: np.ndarray, p_world:
         result["redundancy"] = adj.get("redundancy")
         result["links"] = dict(links.get("by_status", {}), sigma0=links.get("sigma0"))
         result["position_sigma_mm"] = rep.get("stations", {}).get("position_sigma_mm")
+        result["links_model"] = links.get("model")
         result["window_s"] = rep.get("slicing", {}).get("window_s")
         adjusted_mm, input_mm = station_agreement(folder / "out" / "stations.csv", ref, drifted)
         result["stations_rigid_rms_mm"] = round(adjusted_mm, 1)
@@ -262,9 +263,31 @@ def run_one(case: dict, hall: Hall, ref: Trajectory, times: np.ndarray, p_world:
     return result
 
 
+def summary(results: Path) -> str:
+    """The results' table in Markdown: per drift model and magnitude, the runs' figures."""
+    cases = json.loads(results.read_text())["cases"]
+    lines = ["| drift | magnitude | runs | results | input / corrected thickness (per seed) | windows [s] | "
+             "links ok / rejected |",
+             "|---|---|---:|---:|---|---|---|"]
+    for model in MODELS:
+        for pos, rot in MAGNITUDES:
+            runs = [c for c in cases if c["model"] == model and c["pos_m"] == pos]
+            if not runs:
+                continue
+            ok = [c for c in runs if c["exit_code"] == 0 and "thickness_corrected_over_dataset" in c]
+            pairs = ", ".join(f"{c['thickness_input_over_dataset']:.3f} / {c['thickness_corrected_over_dataset']:.3f}"
+                              for c in ok)
+            windows = ", ".join(f"{c['window_s']:g}" for c in ok)
+            links = ", ".join(f"{c['links'].get('ok')} / {c['links'].get('rejected')}" for c in ok)
+            lines.append(f"| {model} | {pos} m / {rot} deg | {len(runs)} | {len(ok)} | {pairs} | {windows} | {links} |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)
+    table = sub.add_parser("summary", help="print the results' table (Markdown)")
+    table.add_argument("results", type=Path, nargs="?", default=Path(__file__).parent / "results" / "real_hall.json")
     for name in ("export", "run"):
         p = sub.add_parser(name)
         p.add_argument("--data", type=Path, required=True, help="the dataset folder or a git mirror of BALM")
@@ -278,6 +301,9 @@ def main() -> None:
     run.add_argument("--results", type=Path, default=Path(__file__).parent / "results" / "real_hall.json")
     run.add_argument("--keep", action="store_true", help="keep the clouds of every run")
     args = ap.parse_args()
+    if args.command == "summary":
+        print(summary(args.results))
+        return
     hall = read_hall(args.data)
     ref = reference_trajectory(hall)
     times = np.concatenate(point_times(hall))
