@@ -23,7 +23,8 @@ Usage: python benchmarks/accuracy_matrix.py [--scenario sample heldout] [--seeds
 With ``--seeds`` every scenario is repeated with those run seeds and the figures are pooled.
 ``--real-world`` turns on every effect of real scans the simulator has
 (:meth:`kinreg.simulation.realism.RealWorldConfig.all_on`: wavy surfaces, heavy-tailed range
-noise and mixed pixels, 0.1 s sweeps every 0.5 s, centimetre jitter of the trajectory, clutter);
+noise and mixed pixels, 0.1 s sweeps every 0.5 s, centimetre jitter of the trajectory, clutter),
+``--real-world jitter sweeps`` only those named (``realism.EFFECTS``);
 the cloud figures then count the points on the building's planes only (not the clutter's).
 """
 
@@ -52,11 +53,11 @@ MAGNITUDES = {
 
 
 def scenario_config(name: str, seed: int | None = None, drift_model: str | None = None,
-                    magnitude: str | None = None, real_world: bool = False):
+                    magnitude: str | None = None, real_world: bool | list[str] = False):
     """The scenario's simulation configuration; ``seed`` replaces its run seed (walk, drift,
     noise; the building stays) for repeated realisations; ``drift_model`` and ``magnitude``
     (a key of :data:`MAGNITUDES`) replace its drift; ``real_world`` turns on every real-world
-    effect of the simulator."""
+    effect of the simulator (``True``) or those named."""
     import dataclasses
 
     from kinreg.simulation.drift import DriftModel
@@ -64,7 +65,8 @@ def scenario_config(name: str, seed: int | None = None, drift_model: str | None 
 
     cfg = _scenario_config(name)
     if real_world:
-        cfg = dataclasses.replace(cfg, real_world=RealWorldConfig.all_on())
+        world = RealWorldConfig.all_on() if real_world is True else RealWorldConfig.only(*real_world)
+        cfg = dataclasses.replace(cfg, real_world=world)
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
     drift = cfg.drift
@@ -224,7 +226,8 @@ def station_errors(stations_csv: Path, truth, drifted) -> dict:
 
 
 def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Path | None = None,
-             drift_model: str | None = None, magnitude: str | None = None, real_world: bool = False) -> dict:
+             drift_model: str | None = None, magnitude: str | None = None,
+             real_world: bool | list[str] = False) -> dict:
     import laspy
 
     from kinreg.config import load_config
@@ -358,11 +361,13 @@ def main() -> None:
     parser.add_argument("--drift-models", nargs="*", default=[None],
                         help="world, slam, gnss-ins (default: the scenario's)")
     parser.add_argument("--magnitudes", nargs="*", default=[None], help=f"drift classes: {', '.join(MAGNITUDES)}")
-    parser.add_argument("--real-world", action="store_true",
-                        help="every real-world effect of the simulator on (RealWorldConfig.all_on)")
+    parser.add_argument("--real-world", nargs="*", default=None,
+                        help="real-world effects of the simulator on: all without a name, else those named "
+                             "(waviness, noise, sweeps, jitter, clutter)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "accuracy_matrix.json")
     args = parser.parse_args()
     results, pools = [], {}
+    real_world = False if args.real_world is None else (args.real_world or True)
     cells = [(n, m, g) for n in args.scenario for m in args.drift_models for g in args.magnitudes]
     for name, model, magnitude in cells:
         runs = []
@@ -370,7 +375,7 @@ def main() -> None:
         for seed in args.seeds or [None]:
             with tempfile.TemporaryDirectory(prefix=f"kinreg-eval-{name}-") as tmp:
                 try:
-                    res = evaluate(name, Path(tmp), seed, args.config, model, magnitude, args.real_world)
+                    res = evaluate(name, Path(tmp), seed, args.config, model, magnitude, real_world)
                 except Exception as e:  # a failed run is a result of the matrix too
                     res = {"scenario": name, "seed": seed, "drift_model": model, "magnitude": magnitude,
                            "error": f"{type(e).__name__}: {e}"}

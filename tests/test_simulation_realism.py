@@ -201,3 +201,11 @@ def test_all_on_in_the_box_scene_without_a_walk_plan_has_no_clutter():
 
     c = make_clutter(make_box_scene(), RealWorldConfig.all_on(), np.random.default_rng(0))
     assert len(c.radii_m) == 0 and len(c.speed_mps) == 0
+
+
+def test_the_effects_are_switched_on_by_name():
+    jitter = RealWorldConfig.only("jitter")
+    assert jitter.jitters and not jitter.shapes_the_rays and jitter.sweep_s == 0 and jitter.tail_share == 0
+    assert RealWorldConfig.only("waviness", "noise", "sweeps", "jitter", "clutter") == RealWorldConfig.all_on()
+    with pytest.raises(ValueError, match="unknown"):
+        RealWorldConfig.only("rain")

@@ -72,6 +72,15 @@ class RealWorldConfig:
         return cls(waviness_rms_m=0.0025, tail_share=0.02, mixed_pixel_footprint_rad=0.003, sweep_s=0.1,
                    jitter_m=0.01, jitter_rad=0.001, furniture_per_room=3, walkers=1)
 
+    @classmethod
+    def only(cls, *effects: str) -> RealWorldConfig:
+        """The effects named (keys of :data:`EFFECTS`) on as in :meth:`all_on`, the others off."""
+        on = cls.all_on()
+        unknown = set(effects) - set(EFFECTS)
+        if unknown:
+            raise ValueError(f"unknown real-world effects {sorted(unknown)}; known: {', '.join(EFFECTS)}")
+        return cls(**{f: getattr(on, f) for e in effects for f in EFFECTS[e]})
+
     @property
     def shapes_the_rays(self) -> bool:
         """Whether a ray's range needs more than the scene's planes (waviness, clutter, mixed pixels)."""
@@ -81,6 +90,16 @@ class RealWorldConfig:
     @property
     def jitters(self) -> bool:
         return self.jitter_m > 0 or self.jitter_rad > 0
+
+
+#: the effects by name, each with the fields of :class:`RealWorldConfig` that switch it on
+EFFECTS: dict[str, tuple[str, ...]] = {
+    "waviness": ("waviness_rms_m",),
+    "noise": ("tail_share", "mixed_pixel_footprint_rad"),
+    "sweeps": ("sweep_s",),
+    "jitter": ("jitter_m", "jitter_rad"),
+    "clutter": ("furniture_per_room", "walkers"),
+}
 
 
 # ---------------------------------------------------------------------------------- waviness
