@@ -18,9 +18,14 @@ Scenarios: ``sample`` (the committed sample_data run), ``heldout`` (another buil
 a 16-beam sensor, other drift and seeds: not used for any development decision), or both.
 
 Usage: python benchmarks/accuracy_matrix.py [--scenario sample heldout] [--seeds 1 2 3 ...]
-       [--out benchmarks/results/accuracy_matrix.json]
+       [--real-world] [--out benchmarks/results/accuracy_matrix.json]
 
 With ``--seeds`` every scenario is repeated with those run seeds and the figures are pooled.
+``--real-world`` turns on every effect of real scans the simulator has
+(:meth:`kinreg.simulation.realism.RealWorldConfig.all_on`: wavy surfaces, heavy-tailed range
+noise and mixed pixels, 0.1 s sweeps every 0.5 s, centimetre jitter of the trajectory, clutter),
+``--real-world jitter sweeps`` only those named (``realism.EFFECTS``);
+the cloud figures then count the points on the building's planes only (not the clutter's).
 """
 
 from __future__ import annotations
@@ -48,15 +53,20 @@ MAGNITUDES = {
 
 
 def scenario_config(name: str, seed: int | None = None, drift_model: str | None = None,
-                    magnitude: str | None = None):
+                    magnitude: str | None = None, real_world: bool | list[str] = False):
     """The scenario's simulation configuration; ``seed`` replaces its run seed (walk, drift,
     noise; the building stays) for repeated realisations; ``drift_model`` and ``magnitude``
-    (a key of :data:`MAGNITUDES`) replace its drift."""
+    (a key of :data:`MAGNITUDES`) replace its drift; ``real_world`` turns on every real-world
+    effect of the simulator (``True``) or those named."""
     import dataclasses
 
     from kinreg.simulation.drift import DriftModel
+    from kinreg.simulation.realism import RealWorldConfig
 
     cfg = _scenario_config(name)
+    if real_world:
+        world = RealWorldConfig.all_on() if real_world is True else RealWorldConfig.only(*real_world)
+        cfg = dataclasses.replace(cfg, real_world=world)
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
     drift = cfg.drift
@@ -113,7 +123,8 @@ def read_stations(path: Path) -> dict[str, np.ndarray]:
 def cloud_fit(run, xyz_iter) -> tuple[float, float]:
     """Two figures of a cloud (points with their simulated patch ids, same order): the RMS distance
     of the points to their true plane, and the planes' thickness: the RMS distance of each
-    physical plane's points to the plane fitted to them (the smallest eigenvalue of their scatter).
+    physical plane's points to the plane fitted to them (the smallest eigenvalue of their scatter);
+    points on no patch (the clutter of a real-world run) are left out of both.
     The first also counts where the whole network sits (its datum's error, a tilt about the datum
     station); the second only how well the passes over each plane agree, which a rigid motion of
     the whole cloud leaves unchanged (and the linear part of a bend across one plane with it): the
@@ -127,8 +138,9 @@ def cloud_fit(run, xyz_iter) -> tuple[float, float]:
     sq, n = 0.0, 0
     origin = run.origin
     for block, xyz in xyz_iter:
-        pid = block.patch_id
-        local = xyz - origin
+        on_patch = block.patch_id >= 0
+        pid = block.patch_id[on_patch]
+        local = xyz[on_patch] - origin
         r = np.einsum("ij,ij->i", local, normals[pid]) - d[pid]
         sq += float(np.sum(r**2))
         n += len(r)
@@ -214,7 +226,8 @@ def station_errors(stations_csv: Path, truth, drifted) -> dict:
 
 
 def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Path | None = None,
-             drift_model: str | None = None, magnitude: str | None = None) -> dict:
+             drift_model: str | None = None, magnitude: str | None = None,
+             real_world: bool | list[str] = False) -> dict:
     import laspy
 
     from kinreg.config import load_config
@@ -223,8 +236,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
     from kinreg.simulation.files import write_run
     from kinreg.simulation.run import simulate_run
 
-    cfg = scenario_config(name, seed, drift_model, magnitude)
-    if name == "sample" and seed is None and drift_model is None and magnitude is None:
+    cfg = scenario_config(name, seed, drift_model, magnitude, real_world)
+    if name == "sample" and seed is None and drift_model is None and magnitude is None and not real_world:
         data = REPO / "sample_data"
     else:
         data = workdir / "data"
@@ -276,7 +289,8 @@ def evaluate(name: str, workdir: Path, seed: int | None = None, config_path: Pat
         "variance_components": adjustment.get("variance_components"),
         "global_test_passed": summary.global_test_passed,
         **{k: v for k, v in stations.items() if k != "stations"},
-        "drift_model": cfg.drift.model.value, "magnitude": magnitude,
+        "drift_model": cfg.drift.model.value, "magnitude": magnitude, "real_world": real_world,
+        "link_model": (report.get("links") or {}).get("model"),
         "cloud_point_to_plane_rms_mm": {"corrected": rms_corrected * 1000, "true_trajectory": rms_truth * 1000,
                                         "input": rms_input * 1000,
                                         "corrected_over_truth": rms_corrected / rms_truth,
@@ -347,9 +361,13 @@ def main() -> None:
     parser.add_argument("--drift-models", nargs="*", default=[None],
                         help="world, slam, gnss-ins (default: the scenario's)")
     parser.add_argument("--magnitudes", nargs="*", default=[None], help=f"drift classes: {', '.join(MAGNITUDES)}")
+    parser.add_argument("--real-world", nargs="*", default=None,
+                        help="real-world effects of the simulator on: all without a name, else those named "
+                             "(waviness, noise, sweeps, jitter, clutter)")
     parser.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "accuracy_matrix.json")
     args = parser.parse_args()
     results, pools = [], {}
+    real_world = False if args.real_world is None else (args.real_world or True)
     cells = [(n, m, g) for n in args.scenario for m in args.drift_models for g in args.magnitudes]
     for name, model, magnitude in cells:
         runs = []
@@ -357,7 +375,7 @@ def main() -> None:
         for seed in args.seeds or [None]:
             with tempfile.TemporaryDirectory(prefix=f"kinreg-eval-{name}-") as tmp:
                 try:
-                    res = evaluate(name, Path(tmp), seed, args.config, model, magnitude)
+                    res = evaluate(name, Path(tmp), seed, args.config, model, magnitude, real_world)
                 except Exception as e:  # a failed run is a result of the matrix too
                     res = {"scenario": name, "seed": seed, "drift_model": model, "magnitude": magnitude,
                            "error": f"{type(e).__name__}: {e}"}

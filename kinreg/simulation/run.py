@@ -20,6 +20,14 @@ from kinreg.geometry import (
     rotvec_to_quat,
 )
 from kinreg.simulation.drift import DriftConfig, DriftModel, _offset_trajectory, drifted_trajectory
+from kinreg.simulation.realism import (
+    RealWorld,
+    RealWorldConfig,
+    in_sweeps,
+    jittered,
+    make_real_world,
+    range_noise,
+)
 from kinreg.simulation.scene import BuildingConfig, BuildingLayout, Scene, ScenePlane, make_building
 from kinreg.simulation.sensor import (
     SensorConfig,
@@ -61,10 +69,14 @@ class SimulationConfig:
     # Targets in the static scans (SimulatedRun.static_targets): the scan measures each target's
     # centre in its frame with this standard deviation per axis (the survey's is control_sigma_mm).
     target_sigma_mm: float = 2.0
+    # What real scans have (wavy surfaces, heavy-tailed noise, mixed pixels, sweeps with gaps,
+    # jitter, clutter): all off by default, RealWorldConfig.all_on() turns every effect on.
+    real_world: RealWorldConfig = field(default_factory=RealWorldConfig)
 
 
 def config_as_dict(config: SimulationConfig) -> dict[str, Any]:
-    """The configuration as plain JSON-able values (enums by value)."""
+    """The configuration as plain JSON-able values (enums by value); ``real_world`` only where
+    some effect is on (so that a run without them writes the files it always wrote)."""
 
     def conv(x: Any) -> Any:
         if isinstance(x, enum.Enum):
@@ -75,13 +87,16 @@ def config_as_dict(config: SimulationConfig) -> dict[str, Any]:
             return [conv(v) for v in x]
         return x
 
-    return conv(dataclasses.asdict(config))
+    out = conv(dataclasses.asdict(config))
+    if config.real_world == RealWorldConfig():
+        del out["real_world"]
+    return out
 
 
 def config_from_dict(data: dict[str, Any]) -> SimulationConfig:
     """The inverse of :func:`config_as_dict` (e.g. from ``run_meta.json``): rebuilds the run."""
     sections = {"building": BuildingConfig, "sensor": SensorConfig, "walk": WalkConfig, "drift": DriftConfig,
-                "static": StaticConfig}
+                "static": StaticConfig, "real_world": RealWorldConfig}
     kwargs: dict[str, Any] = {}
     for key, value in data.items():
         if key in sections:
@@ -108,7 +123,8 @@ class CloudBlock:
     ``stamps_s`` (N,) float64 point times; ``xyz_sensor`` (N, 3) measured points in the platform
     frame (range noise included); ``xyz_obj`` (N, 3) exported object-frame points (mapped with the
     interpolated DRIFTED trajectory, ``origin_xyz`` included); ``intensity`` (N,) uint16;
-    ``patch_id`` (N,) the scene patch each ray hit; ``range_m`` (N,) measured ranges.
+    ``patch_id`` (N,) the scene patch each ray hit (``realism.CLUTTER_PATCH_ID``, -1, on clutter);
+    ``range_m`` (N,) measured ranges.
     """
 
     stamps_s: FloatArray
@@ -144,7 +160,8 @@ class SimulatedRun:
     ``truth`` and ``slam`` are the true and the exported (drifted) 100 Hz trajectories
     ``T_obj_p``; ``drift`` (one pose per row) satisfies ``slam = drift * truth``. ``scene`` is in
     building coordinates (add ``origin_xyz``, or use :meth:`scene_planes_obj`). The cloud is
-    generated on demand, block by block, by :meth:`iter_cloud_blocks`.
+    generated on demand, block by block, by :meth:`iter_cloud_blocks`. ``world`` is the scene as
+    the rays see it with ``config.real_world``'s waviness and clutter (``None`` without them).
     """
 
     config: SimulationConfig
@@ -153,6 +170,7 @@ class SimulatedRun:
     slam: Trajectory
     drift: Pose
     static_scans: tuple[Scan, ...]
+    world: RealWorld | None = None
 
     @property
     def origin(self) -> FloatArray:
@@ -263,13 +281,17 @@ def simulate_run(config: SimulationConfig | None = None) -> SimulatedRun:
     scene = make_building(cfg.building)
     truth_local = make_walk(scene, cfg.walk, cfg.duration_s, cfg.t0_s, _rng(cfg.seed, 1))
     slam_local, drift = drifted_trajectory(truth_local, cfg.drift, _rng(cfg.seed, 2))
+    if cfg.real_world.jitters:
+        slam_local = jittered(slam_local, cfg.real_world, _rng(cfg.seed, 20))
+        drift = slam_local.poses.compose(truth_local.poses.inverse())
+    world = make_real_world(scene, cfg.real_world, _rng(cfg.seed, 21), _rng(cfg.seed, 22))
     origin = np.asarray(cfg.origin_xyz, dtype=np.float64)
     # The drift in the output frame: D' = O D O^-1 (same rotation, pivot moved with the origin).
     drift_out = Pose(drift.quat_wxyz, drift.t_xyz + origin - np.einsum("nij,j->ni", drift.rotation_matrix,
                                                                           origin))
-    static = make_static_scans(scene, cfg.static, _rng(cfg.seed, 4), origin)
+    static = make_static_scans(scene, cfg.static, _rng(cfg.seed, 4), origin, world)
     return SimulatedRun(cfg, scene, _offset_trajectory(truth_local, origin),
-                        _offset_trajectory(slam_local, origin), drift_out, static)
+                        _offset_trajectory(slam_local, origin), drift_out, static, world)
 
 
 def _simulate_block(run: SimulatedRun, index: int, first_index: int) -> CloudBlock:
@@ -282,6 +304,9 @@ def _simulate_block(run: SimulatedRun, index: int, first_index: int) -> CloudBlo
     k = np.arange(k0, max(k0, k1), dtype=np.int64)
     # float64 seconds: t0 + k / rate is exact to ~0.2 microseconds at GPS-like magnitudes
     stamps = cfg.t0_s + k / pr
+    if cfg.real_world.sweep_s > 0:  # the sensor records sweeps with gaps between them
+        recorded = in_sweeps(stamps, cfg.t0_s, cfg.real_world)
+        k, stamps = k[recorded], stamps[recorded]
     beam = k % sen.n_beams
     theta = 2 * np.pi * np.mod(k * (sen.line_rate_hz / pr), 1.0)
     psi = 2 * np.pi * np.mod(k * (sen.head_rate_hz / pr), 1.0)
@@ -307,16 +332,46 @@ def _simulate_block(run: SimulatedRun, index: int, first_index: int) -> CloudBlo
     truth = run.truth
     R_true, o_true = _interpolate_fast(truth.stamps_s, truth.poses, stamps)
     dirs_obj = np.einsum("nij,nj->ni", R_true, d_true)
+    if run.world is not None:
+        return _simulate_real_block(run, index, first_index, rng, stamps, d_nom, o_true - origin, dirs_obj)
     r_true, pid = run.scene.raycast(o_true - origin, dirs_obj, sen.max_range_m, sen.min_range_m)
     hit = pid >= 0
     stamps, d_nom, dirs_obj, r_true, pid = stamps[hit], d_nom[hit], dirs_obj[hit], r_true[hit], pid[hit]
     n = len(stamps)
-    r_meas = r_true + sen.range_sigma_m * rng.standard_normal(n)
+    r_meas = r_true + (range_noise(_rng(cfg.seed, 3000 + index), n, sen.range_sigma_m, cfg.real_world)
+                       if cfg.real_world.tail_share > 0 else sen.range_sigma_m * rng.standard_normal(n))
     xyz_sensor = r_meas[:, None] * d_nom
     # Exported cloud: the interpolated DRIFTED trajectory, exactly as SLAM software georeferences.
     R_slam, t_slam = _interpolate_fast(run.slam.stamps_s, run.slam.poses, stamps)
     xyz_obj = np.einsum("nij,nj->ni", R_slam, xyz_sensor) + t_slam
     normals = np.array([p.normal for p in run.scene.patches])[pid]
     refl = np.array([p.reflectivity for p in run.scene.patches])[pid]
+    intensity = _intensity(refl, -np.einsum("ij,ij->i", normals, dirs_obj), r_true, sen.intensity_noise, rng)
+    return CloudBlock(stamps, xyz_sensor, xyz_obj, intensity, pid, r_meas, first_index)
+
+
+def _simulate_real_block(run: SimulatedRun, index: int, first_index: int, rng: np.random.Generator,
+                         stamps: FloatArray, d_nom: FloatArray, origins: FloatArray,
+                         dirs_obj: FloatArray) -> CloudBlock:
+    """The rest of :func:`_simulate_block` in a real world (``run.world``): rays on wavy surfaces
+    and the clutter, mixed pixels at edges, heavy-tailed range noise (their draws from the
+    block's own second stream)."""
+    cfg, sen, world = run.config, run.config.sensor, run.world
+    assert world is not None
+    extra = _rng(cfg.seed, 3000 + index)
+    r_true, pid, normals = world.raycast(origins, dirs_obj, stamps, sen.max_range_m, sen.min_range_m)
+    hit = np.isfinite(r_true)
+    stamps, d_nom, origins, dirs_obj, r_true, pid, normals = (
+        stamps[hit], d_nom[hit], origins[hit], dirs_obj[hit], r_true[hit], pid[hit], normals[hit])
+    n = len(stamps)
+    r_true = world.mixed_pixels(origins, dirs_obj, stamps, r_true, sen.max_range_m, sen.min_range_m, extra)
+    r_meas = r_true + range_noise(extra, n, sen.range_sigma_m, cfg.real_world)
+    xyz_sensor = r_meas[:, None] * d_nom
+    # Exported cloud: the interpolated DRIFTED (and jittered) trajectory, as SLAM software does it.
+    R_slam, t_slam = _interpolate_fast(run.slam.stamps_s, run.slam.poses, stamps)
+    xyz_obj = np.einsum("nij,nj->ni", R_slam, xyz_sensor) + t_slam
+    on_patch = pid >= 0
+    refl = np.full(n, 0.5)
+    refl[on_patch] = np.array([p.reflectivity for p in run.scene.patches])[pid[on_patch]]
     intensity = _intensity(refl, -np.einsum("ij,ij->i", normals, dirs_obj), r_true, sen.intensity_noise, rng)
     return CloudBlock(stamps, xyz_sensor, xyz_obj, intensity, pid, r_meas, first_index)

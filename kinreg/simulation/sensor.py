@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -16,6 +17,9 @@ from kinreg.geometry import (
 from kinreg.simulation.scene import Scene
 from kinreg.simulation.walk import _rot_x, _rot_y, _rot_z
 from kinreg.types import Scan, ScanKind
+
+if TYPE_CHECKING:
+    from kinreg.simulation.realism import RealWorld
 
 logger = logging.getLogger(__name__)
 
@@ -132,11 +136,12 @@ def static_scan_positions(scene: Scene, n: int, height_m: float) -> FloatArray:
 
 
 def make_static_scans(scene: Scene, config: StaticConfig, rng: np.random.Generator,
-                      origin_xyz: FloatArray | None = None) -> tuple[Scan, ...]:
+                      origin_xyz: FloatArray | None = None, world: RealWorld | None = None) -> tuple[Scan, ...]:
     """Static tripod scans: points (scan frame) on a spherical grid, poses ``T_obj_scan``.
 
     The scanner stands level (a few hundredths of a degree of residual tilt) with a random
-    heading. ``origin_xyz`` is added to the poses' translations.
+    heading. ``origin_xyz`` is added to the poses' translations. With ``world`` the rays see its
+    wavy surfaces and its furniture (not its walkers: the building is empty for a static scan).
     """
     origin = np.zeros(3) if origin_xyz is None else np.asarray(origin_xyz, dtype=np.float64)
     step = math.radians(config.angle_step_deg)
@@ -151,13 +156,22 @@ def make_static_scans(scene: Scene, config: StaticConfig, rng: np.random.Generat
         heading = np.array(rng.uniform(-np.pi, np.pi))
         R = _rot_z(heading) @ _rot_y(np.array(tilt[0])) @ _rot_x(np.array(tilt[1]))
         T_local = Pose.from_rotation_translation(R, pos)
-        r, pid = scene.raycast(np.broadcast_to(pos, d_scan.shape), d_scan @ R.T, config.max_range_m,
-                               config.min_range_m)
-        hit = pid >= 0
+        if world is None:
+            r, pid = scene.raycast(np.broadcast_to(pos, d_scan.shape), d_scan @ R.T, config.max_range_m,
+                                   config.min_range_m)
+            hit = pid >= 0
+        else:
+            r, pid, normals_all = world.raycast(np.ascontiguousarray(np.broadcast_to(pos, d_scan.shape)),
+                                                d_scan @ R.T, None, config.max_range_m, config.min_range_m)
+            hit = np.isfinite(r)
         r_meas = r[hit] + config.range_sigma_m * rng.standard_normal(int(hit.sum()))
         pts = r_meas[:, None] * d_scan[hit]
-        refl = np.array([p.reflectivity for p in scene.patches])[pid[hit]]
-        normals = np.array([p.normal for p in scene.patches])[pid[hit]]
+        if world is None:
+            refl = np.array([p.reflectivity for p in scene.patches])[pid[hit]]
+            normals = np.array([p.normal for p in scene.patches])[pid[hit]]
+        else:
+            refl = np.where(pid[hit] >= 0, np.array([p.reflectivity for p in scene.patches])[pid[hit]], 0.5)
+            normals = normals_all[hit]
         inten = _intensity(refl, -np.einsum("ij,ij->i", normals, d_scan[hit] @ R.T), r[hit], 0.02, rng)
         T_obj_scan = Pose(T_local.quat_wxyz, T_local.t_xyz + origin)
         scans.append(Scan(i, f"static_{i:02d}", ScanKind.STATIC, T_obj_scan, pts,
