@@ -88,7 +88,7 @@ def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
 
     before = rec.array["X"].copy()
     header = with_per_point_dimensions(header)
-    got, extremes = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
+    got, extremes, _ = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
     for dim, (lo, hi) in zip("XYZ", extremes, strict=True):
         assert np.array_equal(got.array[dim], expected.array[dim])
         assert (lo, hi) == (got.array[dim].min(), got.array[dim].max())

@@ -88,6 +88,7 @@ PER_POINT_MAX_PX = 160  # columns per side of the per-point maps at most (coarse
 # (a bin is 30 % wide: the median to +-15 %, enough for a colour map).
 PER_POINT_LOW_MM, PER_POINT_BINS = 0.01, 64
 _PER_POINT_FACTOR = (1e5 / PER_POINT_LOW_MM) ** (1.0 / (PER_POINT_BINS - 2))
+PER_POINT_POINTS = 2_000_000
 PER_POINT_MAPS = {"sigma_3d": "3D POSITION SIGMA", "correction": "CORRECTION LENGTH"}
 
 
@@ -168,6 +169,9 @@ class CloudViews:
         # Columns of at least the thickness map's cell, coarser where the cloud is wide.
         map_grid = Grid.covering(bounds_min, bounds_max, config.thickness_cell_m, PER_POINT_MAX_PX)
         self.per_point = {name: ColumnMedians(map_grid) for name in PER_POINT_MAPS}
+        # Every n-th point enters them: about PER_POINT_POINTS of the n_points_total (a median per
+        # column of at most 160 x 160 needs far fewer than the thickness map's sums).
+        self.per_point_stride = max(1, int(n_points_total) // PER_POINT_POINTS)
         self.n_points = 0
         self.seconds = {"gather": 0.0, "figures": 0.0}  # in add (while corrected.laz is written), in finish
 
@@ -193,9 +197,10 @@ class CloudViews:
             self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
             if self.deviations is not None:
                 self.deviations.add(which, xyz)
-        for name, values in (("sigma_3d", sigma_mm), ("correction", correction_mm)):
-            if values is not None:  # every stride-th point, as the thickness map
-                self.per_point[name].add(xyz_after[::stride], values[::stride])
+        if sigma_mm is not None and correction_mm is not None:
+            every = self.per_point_stride
+            self.per_point["sigma_3d"].add(xyz_after[::every], sigma_mm[::every])
+            self.per_point["correction"].add(xyz_after[::every], correction_mm[::every])
         self.n_points += len(stamps_s)
         self.seconds["gather"] += time.thread_time() - start
 
@@ -300,7 +305,7 @@ class CloudViews:
         """The plan-view maps of the per-point sigma and correction length (each on its own colour
         scale, 0 to the 95th percentile of its columns' medians)."""
         entry: dict[str, Any] = {"cell_m": next(iter(self.per_point.values())).grid.pixel_m,
-                                 "thickness_stride": self.thickness_stride, "images": {}}
+                                 "stride": self.per_point_stride, "images": {}}
         for name, label in PER_POINT_MAPS.items():
             medians = self.per_point[name]
             if medians.n_points == 0:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Protocol
@@ -107,11 +107,14 @@ def write_corrected_las(
                 try:
                     while (points := ahead.result()) is not None:
                         ahead = decoding.submit(next, chunks, None)
-                        points, extremes = _corrected(points, correction, header, source, T_obj_cloud,
-                                                      time_offset_s, observer, buffers, widened)
-                        if written is not None:
-                            written.result()
+                        # the previous chunk's encoding lets go of the widened records before this
+                        # chunk's go there (one buffer: lazrs overlaps little anyway, see above)
+                        points, extremes, seen = _corrected(points, correction, header, source, T_obj_cloud,
+                                                            time_offset_s, None, buffers, widened,
+                                                            None if written is None else written.result)
                         written = encoding.submit(_write_points, writer, points, extremes)
+                        if observer is not None:  # while the chunk is encoded
+                            observer.add(*seen)
                         n += len(points)
                         progress.advance(len(points))
                     if written is not None:
@@ -158,13 +161,12 @@ def with_per_point_dimensions(header: Any) -> Any:
 
 class _Widened:
     """The records of the output's point format (the input's and the two per-point dimensions
-    after them), in two buffers taken in turn: one is filled while the other is encoded."""
+    after them), in one buffer kept from chunk to chunk (a fresh one costs its pages each time)."""
 
     def __init__(self, point_format: Any) -> None:
         self.point_format = point_format
         self.dtype = point_format.dtype()
-        self.arrays: list[NDArray[Any]] = [np.empty(0, dtype=self.dtype), np.empty(0, dtype=self.dtype)]
-        self.turn = 0
+        self.array: NDArray[Any] = np.empty(0, dtype=self.dtype)
 
     def of(self, points: Any) -> Any:
         """``points`` (a laspy record of the input's format) in the output's format: the same
@@ -175,10 +177,9 @@ class _Widened:
         if array.dtype == self.dtype:
             return points
         n = len(array)
-        self.turn = (self.turn + 1) % 2
-        if len(self.arrays[self.turn]) < n:
-            self.arrays[self.turn] = np.empty(n, dtype=self.dtype)
-        out = self.arrays[self.turn][:n]
+        if len(self.array) < n:
+            self.array = np.empty(n, dtype=self.dtype)
+        out = self.array[:n]
         # The input's fields are the first bytes of each output record (laspy appends extra
         # dimensions): each record copied as one opaque value (a copy per field, or of a 2D view
         # of the bytes, is a loop over small items: 20-60 times slower).
@@ -207,12 +208,14 @@ class _Buffers:
 
 def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Path, T_obj_cloud: Pose | None,
                time_offset_s: float, observer: PointObserver | None,
-               buffers: _Buffers | None = None,
-               widened: _Widened | None = None) -> tuple[Any, list[tuple[float, float]]]:
+               buffers: _Buffers | None = None, widened: _Widened | None = None,
+               settle: Callable[[], object] | None = None) -> tuple[Any, list[tuple[float, float]], tuple[Any, ...]]:
     """One chunk's points (a laspy record) with X, Y, Z corrected and the per-point dimensions
     filled (in the point format of ``header``, :func:`with_per_point_dimensions`), points without
-    a finite time left out; and the range of the new raw integers of each of X, Y, Z (for the
-    header, see :func:`_write_points`).
+    a finite time left out; the range of the new raw integers of each of X, Y, Z (for the
+    header, see :func:`_write_points`); and what ``observer`` sees (points before and after, times,
+    sigmas, correction lengths), valid until the next chunk. ``settle`` (optional) is called before
+    the chunk goes into ``widened``'s buffer (the encoding of the one before is done with it).
 
     The coordinates go from the raw integers to coordinate rows (3, n) and back with laspy's own
     formulas (``X * scale + offset``; ``round((x - offset) / scale)`` after its range check), the
@@ -224,7 +227,6 @@ def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Pa
     finite = np.isfinite(t)
     if not finite.all():
         points, t = points[finite], t[finite]
-    points = (widened or _Widened(header.point_format)).of(points)
     rows = buffers.get("rows", 3, len(t))
     for row, raw, scale, offset in zip(rows, _raw_xyz(points), points.scales, points.offsets, strict=True):
         np.multiply(raw, scale, out=row)
@@ -234,13 +236,17 @@ def _corrected(points: Any, correction: DriftCorrection, header: Any, source: Pa
         xyz = np.ascontiguousarray(T_obj_cloud.apply(xyz).T).T
         points.offsets = header.offsets  # X, Y, Z are overwritten below, in the new system
     fixed = correction.apply_to_points(xyz, t, out=buffers.get("fixed", 3, len(t)))
+    if settle is not None:
+        settle()
+    points = (widened or _Widened(header.point_format)).of(points)
     sigma_mm, correction_mm = _fill_per_point(correction, xyz, fixed, t, points)
+    seen = (xyz, fixed, t, sigma_mm, correction_mm)
     if observer is not None:
-        observer.add(xyz, fixed, t, sigma_mm, correction_mm)
+        observer.add(*seen)
     extremes = [_store(raw, fixed[:, i], float(scale), float(offset), source)
                 for i, (raw, scale, offset) in enumerate(zip(_raw_xyz(points), points.scales, points.offsets,
                                                              strict=True))]
-    return points, extremes
+    return points, extremes, seen
 
 
 _PER_POINT_BLOCK = 1 << 16  # points per block of the per-point values (temporaries stay in the cache)
