@@ -10,7 +10,7 @@ from conftest import make_trajectory, random_correction
 
 from kinreg.estimate.correction import DriftCorrection
 from kinreg.geometry import Pose
-from kinreg.run.corrected_cloud import write_corrected_las
+from kinreg.run.corrected_cloud import with_per_point_dimensions, write_corrected_las
 
 
 @pytest.mark.parametrize("suffix", [".laz", ".las"])
@@ -57,7 +57,8 @@ class CopyingObserver:
         self.after: list[np.ndarray] = []
         self.stamps: list[np.ndarray] = []
 
-    def add(self, xyz_before: np.ndarray, xyz_after: np.ndarray, stamps_s: np.ndarray) -> None:
+    def add(self, xyz_before: np.ndarray, xyz_after: np.ndarray, stamps_s: np.ndarray,
+            sigma_mm: np.ndarray | None = None, correction_mm: np.ndarray | None = None) -> None:
         self.before.append(np.array(xyz_before))
         self.after.append(np.array(xyz_after))
         self.stamps.append(np.array(stamps_s))
@@ -68,7 +69,7 @@ def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
     exactly the integers of laspy's scaled views (``points.x = ...``) with the same correction, and
     the same overflow error."""
     from kinreg.errors import CloudError
-    from kinreg.run.corrected_cloud import _corrected
+    from kinreg.run.corrected_cloud import _corrected, with_per_point_dimensions
 
     rng = np.random.default_rng(4)
     traj = make_trajectory(30.0, offset=(500_000.0, 5_400_000.0, 300.0))
@@ -86,7 +87,8 @@ def test_chunk_integers_are_those_of_laspy_scaled_setters(tmp_path) -> None:
     expected.x, expected.y, expected.z = fixed[:, 0], fixed[:, 1], fixed[:, 2]
 
     before = rec.array["X"].copy()
-    got, extremes = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
+    header = with_per_point_dimensions(header)
+    got, extremes, _ = _corrected(rec, correction, header, tmp_path / "in.laz", None, 0.0, None)
     for dim, (lo, hi) in zip("XYZ", extremes, strict=True):
         assert np.array_equal(got.array[dim], expected.array[dim])
         assert (lo, hi) == (got.array[dim].min(), got.array[dim].max())
@@ -128,7 +130,8 @@ def test_header_statistics_are_laspys(tmp_path, point_format) -> None:
     assert write_corrected_las(source, target, correction, chunk_points=3_000) == n - len(t[::997])
     written = laspy.read(target)
     again = tmp_path / "again.laz"  # the same points through laspy's own writer
-    with laspy.open(source) as r, laspy.open(again, mode="w", header=r.header, do_compress=True) as w:
+    with laspy.open(source) as r, laspy.open(again, mode="w", header=with_per_point_dimensions(r.header),
+                                             do_compress=True) as w:
         for a in range(0, len(written.points), 3_000):
             w.write_points(written.points[a:a + 3_000])
     with open(target, "rb") as f, open(again, "rb") as g:

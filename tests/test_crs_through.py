@@ -88,7 +88,8 @@ def test_corrected_cloud_keeps_header_vlrs_and_evlrs(tmp_path, suffix):
     assert np.array_equal(out.header.scales, src.header.scales)
     assert np.array_equal(out.header.offsets, src.header.offsets)
     vlrs = [(v.user_id, v.record_id) for v in out.header.vlrs if v.user_id != "laszip encoded"]
-    assert vlrs == [("LASF_Projection", 2112), ("kinreg_test", 7)]
+    # the input's VLRs, then the extra-bytes record of the per-point sigma and correction length
+    assert vlrs == [("LASF_Projection", 2112), ("kinreg_test", 7), ("LASF_Spec", 4)]
     assert [(e.user_id, e.record_id, bytes(e.record_data)) for e in out.evlrs] == \
         [("kinreg_test", 9, b"extended" * 100)]
     assert read_las_crs(target).wkt == WKT

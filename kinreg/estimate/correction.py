@@ -23,6 +23,11 @@ Jumps of the trajectory (:mod:`kinreg.estimate.jumps`) are taken out first: a po
 jumps ``S_1 ... S_k`` is mapped by ``S_1^-1 ... S_k^-1`` (a point inside a jump's sample interval,
 which the SLAM output interpolated across the step, by the matching fraction of it), and the
 smooth correction then works on the stations' poses without the jumps.
+
+Each point's position sigma (:meth:`DriftCorrection.sigma_at_points`) is that of the adjusted
+stations' positions, interpolated in time the same way (on the grid of the correction, held beyond
+the first and last station), but with a shape-preserving cubic (PCHIP) instead of the natural
+spline: a sigma never swings below zero next to the datum station, where it is zero.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import CubicSpline
+from scipy.interpolate import CubicSpline, PchipInterpolator
 
 from kinreg.estimate.jumps import jump_arrays, jump_removal
 from kinreg.geometry import (
@@ -85,18 +90,23 @@ class DriftCorrection:
     # points about the sensor wherever it is (GNSS/INS, a tracker), 0 where it is one rigid motion
     # between stations (SLAM, a rigid drift of the world).
     coupling: float = 0.0
+    # (k,) [m]: each station's 3D position sigma after the adjustment (root of the trace of its
+    # position covariance; 0 for a fixed station), for the points' sigmas; None: not known.
+    sigma_3d_m: FloatArray | None = None
 
     @classmethod
     def from_stations(cls, stamps_s: FloatArray, initial: Pose, adjusted: Pose, trajectory: Trajectory,
-                      jumps: Sequence[TrajectoryJump] = (), coupling: float = 0.0) -> DriftCorrection:
+                      jumps: Sequence[TrajectoryJump] = (), coupling: float = 0.0,
+                      sigma_3d_m: FloatArray | None = None) -> DriftCorrection:
         """From the initial and adjusted poses of the time-stamped stations (sorted by time).
         With ``jumps``, ``initial`` are the stations' poses without them (:meth:`without_jumps`).
-        ``coupling``: see the field."""
+        ``coupling``, ``sigma_3d_m`` (per station, in the order of ``stamps_s``): see the fields."""
         order = np.argsort(stamps_s)
         q_corr = quat_multiply(adjusted.quat_wxyz[order], initial.inverse().quat_wxyz[order])
+        sigma = None if sigma_3d_m is None else np.asarray(sigma_3d_m, dtype=np.float64)[order]
         return cls(np.asarray(stamps_s, dtype=np.float64)[order], quat_to_rotvec(q_corr),
                    adjusted.t_xyz[order] - initial.t_xyz[order], trajectory, initial.t_xyz[order],
-                   *jump_arrays(jumps), coupling=float(coupling))
+                   *jump_arrays(jumps), coupling=float(coupling), sigma_3d_m=sigma)
 
     def without_jumps(self, stamps_s: FloatArray) -> Pose:
         """Per time (n,): the map that takes the jumps out (see :func:`jump_removal`)."""
@@ -213,6 +223,37 @@ class DriftCorrection:
                 row += x[i]
                 row += v[9 + i]
         return out.T
+
+    def sigma_at_points(self, stamps_s: FloatArray, out: FloatArray | None = None) -> FloatArray:
+        """The 3D position sigma [m] (n,) of points measured at times ``stamps_s`` (n,): the
+        stations' :attr:`sigma_3d_m` through a shape-preserving cubic in time (PCHIP), held beyond
+        the first and last station, evaluated on the grid of :meth:`apply_to_points` and
+        interpolated linearly to each point's time. ``out`` (optional, (n,)) receives it. Raises
+        ``ValueError`` without station sigmas."""
+        if self.sigma_3d_m is None:
+            raise ValueError("the correction has no station sigmas")
+        t = np.asarray(stamps_s, dtype=np.float64)
+        if out is None:
+            out = np.empty(len(t))
+        if len(t) == 0:
+            return out
+        if len(self.stamps_s) == 1:
+            out[:] = self.sigma_3d_m[0]
+            return out
+        lo = max(float(t.min()), float(self.stamps_s[0]))
+        hi = min(float(t.max()), float(self.stamps_s[-1]))
+        if hi <= lo:  # every point beyond one end: held
+            out[:] = self._sigma_spline(np.clip(lo, self.stamps_s[0], self.stamps_s[-1]))
+            return out
+        grid = lo + POINT_GRID_S * np.arange(int(np.ceil((hi - lo) / POINT_GRID_S)) + 1)
+        grid[-1] = hi
+        # np.interp holds the end values beyond the grid: the stations' beyond the first and last
+        out[:] = np.interp(t, grid, self._sigma_spline(grid))
+        return out
+
+    @functools.cached_property
+    def _sigma_spline(self) -> PchipInterpolator:
+        return PchipInterpolator(self.stamps_s, np.maximum(np.asarray(self.sigma_3d_m), 0.0))
 
     def apply_to_trajectory(self, trajectory: Trajectory) -> Trajectory:
         """The trajectory with every pose corrected (same rows, same times)."""

@@ -200,6 +200,20 @@ def cloud_section(report: dict[str, Any], base_dir: Path | None) -> str:
                 f"cells), before left (or above), after right (or below); light yellow 0 to dark red {vmax} and "
                 "more; grey: no planar "
                 "cell."))
+    per_point = cloud.get("per_point")
+    if isinstance(per_point, dict) and per_point.get("images"):
+        images = per_point["images"]
+        parts.append(_pair(
+            _image(images.get("sigma_3d"), "Map of the median 3D position sigma of the points per grid column",
+                   base_dir),
+            _image(images.get("correction"), "Map of the median correction length of the points per grid column",
+                   base_dir),
+            f"Accuracy per point, as in corrected.laz's extra bytes sigma_3d_mm and correction_mm: the median "
+            f"per column of {_fmt(per_point.get('cell_m'), 1, 'm')} of each point's 3D position sigma (from the "
+            f"adjusted stations, interpolated in time; light yellow 0 to dark red "
+            f"{_fmt(per_point.get('sigma_3d_map_max_mm'), 1, 'mm')}) left (or above), and of the length of its "
+            f"correction (0 to {_fmt(per_point.get('correction_map_max_mm'), 1, 'mm')}) right (or below); "
+            "grey: no points."))
     if cards:
         parts.append(cards)
     return "\n".join(parts)

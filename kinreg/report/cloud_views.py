@@ -12,6 +12,9 @@ keeps only rasters and per-cell moments (bounded memory, no extra pass over the 
   stretch of the (first run's) trajectory;
 - ``cloud.thickness``: the plane-thickness map and the median ratio after/before over the cells
   planar in both (:mod:`kinreg.report.thickness`);
+- ``cloud.per_point``: plan-view maps of the median per column of each point's 3D position sigma
+  and of its correction length, the two extra-bytes dimensions of corrected.laz
+  (:class:`ColumnMedians`);
 - ``cloud.static_deviations`` (with ``--static``): signed distances of the kinematic points to the
   static cloud's local planes before and after (:mod:`kinreg.report.deviations`);
 - ``crs``: the coordinate reference system of the input cloud (:mod:`kinreg.report.crs`).
@@ -80,6 +83,55 @@ MIN_CELL_POINTS = 50  # points of a planar cell (1 m cell at 5 mm noise: the thi
 # 0.0005 at most (benchmarks/RESULTS.md), and the sums are most of the views' cost.
 THICKNESS_POINTS = 8_000_000
 BLOCK_POINTS = 1 << 16  # points per block of the rasters
+PER_POINT_MAX_PX = 160  # columns per side of the per-point maps at most (coarser cells beyond)
+# Bins of the per-point values' histograms [mm]: below the first edge, then geometric up to 100 m
+# (a bin is 30 % wide: the median to +-15 %, enough for a colour map).
+PER_POINT_LOW_MM, PER_POINT_BINS = 0.01, 64
+_PER_POINT_FACTOR = (1e5 / PER_POINT_LOW_MM) ** (1.0 / (PER_POINT_BINS - 2))
+PER_POINT_POINTS = 2_000_000
+PER_POINT_MAPS = {"sigma_3d": "3D POSITION SIGMA", "correction": "CORRECTION LENGTH"}
+
+
+class ColumnMedians:
+    """The median of a per-point value [mm] over each column of a plan-view grid, from a histogram
+    per column in :data:`PER_POINT_BINS` logarithmic bins (bounded memory: at most
+    :data:`PER_POINT_MAX_PX` squared columns, 4 bytes per bin, whatever the number of points)."""
+
+    def __init__(self, grid: Grid) -> None:
+        self.grid = grid
+        self.counts = np.zeros(grid.width * grid.height * PER_POINT_BINS, dtype=np.uint32)
+        self.n_points = 0
+        self.largest_mm = 0.0
+
+    def add(self, xy: FloatArray, values_mm: FloatArray) -> None:
+        """Points (n, >=2) in the plan and their values (n,) [mm]; non-finite values are left out."""
+        index, inside = self.grid.flat_index(xy)
+        inside &= np.isfinite(values_mm)
+        if not inside.any():
+            return
+        values = np.maximum(np.asarray(values_mm, dtype=np.float64)[inside], PER_POINT_LOW_MM * 0.5)
+        bins = np.floor(np.log(values / PER_POINT_LOW_MM) / math.log(_PER_POINT_FACTOR)).astype(np.int64) + 1
+        np.clip(bins, 0, PER_POINT_BINS - 1, out=bins)
+        flat = index[inside] * PER_POINT_BINS + bins
+        # over the span of bins the chunk touches (a chunk is a few seconds of the walk: a small
+        # part of the map), not a fresh array of every bin per chunk
+        lo = int(flat.min())
+        per_bin = np.bincount(flat - lo)
+        span = self.counts[lo:lo + len(per_bin)]
+        np.add(span, per_bin, out=span, casting="unsafe")
+        self.n_points += len(flat)
+        self.largest_mm = max(self.largest_mm, float(values.max()))
+
+    def medians_mm(self) -> FloatArray:
+        """(height, width): each column's median [mm] (the centre of its median bin, on the log
+        scale); NaN for a column without points."""
+        counts = self.counts.reshape(-1, PER_POINT_BINS).astype(np.int64)
+        total = counts.sum(axis=1)
+        median_bin = (np.cumsum(counts, axis=1) >= (total[:, None] + 1) // 2).argmax(axis=1)
+        centre = PER_POINT_LOW_MM * _PER_POINT_FACTOR ** (median_bin - 0.5)
+        centre[median_bin == 0] = 0.0
+        centre[total == 0] = np.nan
+        return centre.reshape(self.grid.height, self.grid.width)
 
 
 class CloudViews:
@@ -114,11 +166,19 @@ class CloudViews:
         self.moments = {which: CellMoments(origin, config.thickness_cell_m, extent) for which in ("before", "after")}
         self.crs = crs or {}
         self.deviations = None if static_planes is None else Deviations(static_planes)
+        # Columns of at least the thickness map's cell, coarser where the cloud is wide.
+        map_grid = Grid.covering(bounds_min, bounds_max, config.thickness_cell_m, PER_POINT_MAX_PX)
+        self.per_point = {name: ColumnMedians(map_grid) for name in PER_POINT_MAPS}
+        # Every n-th point enters them: about PER_POINT_POINTS of the n_points_total (a median per
+        # column of at most 160 x 160 needs far fewer than the thickness map's sums).
+        self.per_point_stride = max(1, int(n_points_total) // PER_POINT_POINTS)
         self.n_points = 0
         self.seconds = {"gather": 0.0, "figures": 0.0}  # in add (while corrected.laz is written), in finish
 
-    def add(self, xyz_before: FloatArray, xyz_after: FloatArray, stamps_s: FloatArray) -> None:
-        """One chunk: object-frame points (n, 3) as read and as corrected, their times (n,)."""
+    def add(self, xyz_before: FloatArray, xyz_after: FloatArray, stamps_s: FloatArray,
+            sigma_mm: FloatArray | None = None, correction_mm: FloatArray | None = None) -> None:
+        """One chunk: object-frame points (n, 3) as read and as corrected, their times (n,), and
+        (optional) their 3D position sigmas and correction lengths (n,) [mm]."""
         if not self.config.cloud_views or len(stamps_s) == 0:
             return
         start = time.thread_time()
@@ -137,6 +197,10 @@ class CloudViews:
             self.moments[which].add(xyz[::stride] if stride > 1 else xyz)
             if self.deviations is not None:
                 self.deviations.add(which, xyz)
+        if sigma_mm is not None and correction_mm is not None:
+            every = self.per_point_stride
+            self.per_point["sigma_3d"].add(xyz_after[::every], sigma_mm[::every])
+            self.per_point["correction"].add(xyz_after[::every], correction_mm[::every])
         self.n_points += len(stamps_s)
         self.seconds["gather"] += time.thread_time() - start
 
@@ -195,6 +259,7 @@ class CloudViews:
             "heights": "automatic" if self.automatic else "configured",
             "sections": sections,
             "thickness": self._thickness(figures),
+            "per_point": self._per_point(figures),
         }
         if self.vertical is not None:
             cloud["vertical_section"] = self._vertical(figures)
@@ -236,6 +301,26 @@ class CloudViews:
             entry[f"n_points_{which}"] = raster.n_points
         return entry
 
+    def _per_point(self, figures: Path) -> dict[str, Any]:
+        """The plan-view maps of the per-point sigma and correction length (each on its own colour
+        scale, 0 to the 95th percentile of its columns' medians)."""
+        entry: dict[str, Any] = {"cell_m": next(iter(self.per_point.values())).grid.pixel_m,
+                                 "stride": self.per_point_stride, "images": {}}
+        for name, label in PER_POINT_MAPS.items():
+            medians = self.per_point[name]
+            if medians.n_points == 0:
+                continue
+            grid = medians.medians_mm()
+            finite = grid[np.isfinite(grid)]
+            vmax_mm = max(float(np.percentile(finite, 95)), 0.01)
+            entry[f"{name}_map_max_mm"] = vmax_mm
+            entry[f"{name}_median_mm"] = float(np.median(finite))
+            image = _column_image(grid / 1000.0, medians.grid.pixel_m, vmax_mm / 1000.0, label)
+            file_name = f"per_point_{name}.png"
+            _write_png(figures / file_name, image)
+            entry["images"][name] = f"{FIGURES_DIR}/{file_name}"
+        return entry
+
     def _thickness(self, figures: Path) -> dict[str, Any]:
         result = compare(self.moments["before"], self.moments["after"], MIN_CELL_POINTS)
         entry: dict[str, Any] = dict(result.figures)
@@ -253,15 +338,16 @@ class CloudViews:
         for which, c, t in (("before", result.cells_before, result.thickness_before_m),
                             ("after", result.cells_after, result.thickness_after_m)):
             grid = column_map(c, t, i0, j1, width, height)
-            image = _thickness_image(grid, self.config.thickness_cell_m, vmax, which)
+            image = _column_image(grid, self.config.thickness_cell_m, vmax, f"THICKNESS {which.upper()}")
             name = f"thickness_{which}.png"
             _write_png(figures / name, image)
             entry["images"][which] = f"{FIGURES_DIR}/{name}"
         return entry
 
 
-def _thickness_image(grid: FloatArray, cell_m: float, vmax_m: float, which: str) -> Image:
-    """The column map as an image: each cell a square of pixels, about 800 px wide."""
+def _column_image(grid: FloatArray, cell_m: float, vmax_m: float, label: str) -> Image:
+    """A column map [m] (NaN: no value) as an image: each cell a square of pixels, about 800 px
+    wide, coloured 0 to ``vmax_m``."""
     w = grid.shape[1]
     px = int(max(2, min(40, 800 // max(w, 1))))
     big = np.kron(np.nan_to_num(grid, nan=-1.0), np.ones((px, px)))
@@ -273,10 +359,11 @@ def _thickness_image(grid: FloatArray, cell_m: float, vmax_m: float, which: str)
     full = big >= 0
     view[~full] = (235, 235, 235)
     view[full] = colour_map(big[full] / vmax_m, heat=True)
-    draw_label(image, f"THICKNESS {which.upper()}")
+    draw_label(image, label)
     draw_scale_bar(image, cell_m / px)
     draw_north_arrow(image)
-    draw_colour_bar(image, "0", f"{vmax_m * 1000:.0f} mm", heat=True)
+    vmax_mm = vmax_m * 1000
+    draw_colour_bar(image, "0", f"{vmax_mm:.0f} mm" if vmax_mm >= 10 else f"{vmax_mm:.2g} mm", heat=True)
     return image
 
 

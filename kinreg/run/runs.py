@@ -114,11 +114,13 @@ def run_correction(stations: Sequence[Station], result: BlockResult, run_index: 
                    jumps: Sequence[TrajectoryJump] = (), coupling: float = 0.0) -> DriftCorrection:
     """The drift correction of one run, from its own quasi-static stations only (runs overlap in
     space and may overlap in time; each has its own drift); ``coupling``: the drift's measured one
-    (:class:`~kinreg.estimate.correction.DriftCorrection`)."""
+    (:class:`~kinreg.estimate.correction.DriftCorrection`). The stations' 3D position sigmas
+    (the root of the trace of ``result.cov_position``) go with it, for the points' sigmas."""
     own = np.array([s.kind is ScanKind.QUASI_STATIC and s.run == run_index for s in stations])
     times = np.array([s.t_s for s in stations])
+    sigma_3d_m = np.sqrt(np.maximum(np.trace(result.cov_position[own], axis1=1, axis2=2), 0.0))
     return DriftCorrection.from_stations(times[own], result.poses_initial[own], result.poses[own], trajectory,
-                                         jumps, coupling)
+                                         jumps, coupling, sigma_3d_m)
 
 
 def adjusted_sequence_scans(sequences: Sequence[QuasiStaticSequence], poses: Pose) -> Iterator[Scan]:
