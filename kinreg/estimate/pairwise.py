@@ -90,6 +90,15 @@ class _Design:
         A[..., :2, 3:] = np.einsum("gkci,gkij->gkcj", self.uv_a, dm_dphi)
         A[..., 2, :3] = self.n_b  # d(m . (t + R rho))/drho = m^T R = n_b^T
         A[..., 2, 3:] = np.einsum("gi,gkij->gkj", t, dm_dphi)
+        return w.reshape(g_count, -1), A.reshape(g_count, -1, 6), self.conditions_covariance(R, t, self.cov_a,
+                                                                                            self.cov_b)
+
+    def conditions_covariance(self, R: FloatArray, t: FloatArray, cov_a: FloatArray,
+                              cov_b: FloatArray) -> FloatArray:
+        """Q_ww = B Q_ll B^T (g, 3m, 3m) at ``T = (R, t)`` for the planes' covariances ``cov_a``,
+        ``cov_b`` (g, m, 3, 3): the design's own, or one variance component's
+        (:func:`_component_sums`)."""
+        g_count, m_count = self.d_a.shape
         # B is -I against the observations of plane a and J against those of plane b, so that
         # B Q_ll B^T is C_a where two matches share plane a and J_k C_b J_l^T where they share b
         # (forming B over all observations cost more than these blocks).
@@ -98,10 +107,9 @@ class _Design:
         J[..., :2, :2] = np.einsum("gkci,gkdi->gkcd", self.uv_a, Ruv_b)
         J[..., 2, :2] = np.einsum("gkci,gi->gkc", Ruv_b, t)
         J[..., 2, 2] = 1.0
-        JC = J @ self.cov_b
-        Q = self.same_a * self.cov_a[:, :, None] + self.same_b * np.einsum("gkac,glbc->gklab", JC, J)
-        Q_ww = Q.transpose(0, 1, 3, 2, 4).reshape(g_count, 3 * m_count, 3 * m_count)
-        return w.reshape(g_count, -1), A.reshape(g_count, -1, 6), Q_ww
+        JC = J @ cov_b
+        Q = self.same_a * cov_a[:, :, None] + self.same_b * np.einsum("gkac,glbc->gklab", JC, J)
+        return Q.transpose(0, 1, 3, 2, 4).reshape(g_count, 3 * m_count, 3 * m_count)
 
 
 def _pinv_symmetric(Q: FloatArray) -> FloatArray:
@@ -183,7 +191,7 @@ def _solve(design: _Design, max_iterations: int) -> dict:
     Q_xx = np.linalg.inv(N_p + _diag(design.p_prior))
     Q_ee = Q_ww - A @ Q_xx @ A.swapaxes(1, 2)
     omega = np.einsum("gi,gij,gj->g", w, W, w) + np.einsum("gi,gi,gi->g", xi, design.p_prior, xi)
-    return {"R": R, "t": t, "xi": xi, "w": w, "AtW": AtW, "N_p": N_p, "Q_xx": Q_xx, "Q_ee": Q_ee,
+    return {"R": R, "t": t, "xi": xi, "w": w, "W": W, "AtW": AtW, "N_p": N_p, "Q_xx": Q_xx, "Q_ee": Q_ee,
             "omega": omega}
 
 
@@ -558,7 +566,7 @@ def _component_sums(states: list[_PairState], config: PairwiseConfig, model: Lin
     for members in groups.values():
         design = _Design([states[k] for k in members])
         sol = _solve(design, config.max_iterations)
-        W = _pinv_symmetric(design.linearise(sol["R"], sol["t"])[2])
+        W = sol["W"]
         We = np.einsum("gij,gj->gi", W, sol["w"])
         WQ = W @ sol["Q_ee"]
         part = [states[k] for k in members]
@@ -584,10 +592,6 @@ def _component_q_ww(design: _Design, sol: dict, part: list[_PairState], model: L
         return _departure_cov(p, var_t, var_o) if model.size_class(p) == size_class else np.zeros((3, 3))
 
     shape = design.cov_a.shape
-    cov_a, cov_b = design.cov_a, design.cov_b
-    try:
-        design.cov_a = np.array([cov(s.by_id_i[m.plane_i]) for s in part for m in s.active]).reshape(shape)
-        design.cov_b = np.array([cov(s.by_id_j[m.plane_j]) for s in part for m in s.active]).reshape(shape)
-        return design.linearise(sol["R"], sol["t"])[2]
-    finally:
-        design.cov_a, design.cov_b = cov_a, cov_b
+    cov_a = np.array([cov(s.by_id_i[m.plane_i]) for s in part for m in s.active]).reshape(shape)
+    cov_b = np.array([cov(s.by_id_j[m.plane_j]) for s in part for m in s.active]).reshape(shape)
+    return design.conditions_covariance(sol["R"], sol["t"], cov_a, cov_b)

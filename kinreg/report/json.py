@@ -17,7 +17,7 @@ from kinreg.estimate.network import Network
 from kinreg.estimate.reference import as_built
 from kinreg.estimate.snooping import residual_size
 from kinreg.geometry import FloatArray, Pose, matrix_to_quat, quat_to_rotvec
-from kinreg.report.tables import stations_table, write_text
+from kinreg.report.tables import links_per_station, stations_table, write_text
 from kinreg.survey import ReferencePlanes
 from kinreg.types import BlockResult, LinkStatus, ObservationTest, Plane, ScanKind, TrajectoryJump
 
@@ -194,10 +194,7 @@ def build_failure_report(*, inputs: dict[str, Any], config_toml: str, result: Bl
     }
     if network is not None:
         links = network.links
-        n_links = np.zeros(len(network.stations), dtype=int)
-        for link in links:
-            if link.status is LinkStatus.OK:
-                n_links[[link.scan_i, link.scan_j]] += 1
+        n_links = links_per_station(len(network.stations), links)
         report["stations"] = {"n": len(network.stations), "poses": "the trajectory's (not adjusted)", "rows": [
             {"station": s.name, "kind": s.kind.value, "x": float(s.T_obj_scan.t_xyz[0]),
              "y": float(s.T_obj_scan.t_xyz[1]), "z": float(s.T_obj_scan.t_xyz[2]),

@@ -42,14 +42,20 @@ def _fmt(value: float, digits: int) -> str:
     return "" if not np.isfinite(value) else f"{value:.{digits}f}"
 
 
-def stations_table(stations: Sequence[Station], result: BlockResult, planes: Sequence[tuple[Plane, ...]],
-                   links: Sequence[Link]) -> list[dict[str, Any]]:
-    """One row per station with the columns of ``stations.csv`` (plus orientation sigmas)."""
-    n_links = np.zeros(len(stations), dtype=int)
+def links_per_station(n_stations: int, links: Sequence[Link]) -> np.ndarray:
+    """How many ``ok`` links each station has."""
+    n_links = np.zeros(n_stations, dtype=int)
     for link in links:
         if link.status is LinkStatus.OK:
             n_links[link.scan_i] += 1
             n_links[link.scan_j] += 1
+    return n_links
+
+
+def stations_table(stations: Sequence[Station], result: BlockResult, planes: Sequence[tuple[Plane, ...]],
+                   links: Sequence[Link]) -> list[dict[str, Any]]:
+    """One row per station with the columns of ``stations.csv`` (plus orientation sigmas)."""
+    n_links = links_per_station(len(stations), links)
     sigma = result.sigma_position_m * 1000.0
     sigma_rot = np.degrees(np.sqrt(np.maximum(np.diagonal(result.cov_xi[:, 3:, 3:], axis1=1, axis2=2), 0))) * 1000
     rows = []

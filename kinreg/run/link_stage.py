@@ -113,7 +113,7 @@ def link_stations(
     links = _link_todo(todo, pairs, kept, stations, planes, sigmas, (matching, drift, pairwise, static, None),
                        progress, executor)
     model = LinkModel()
-    sigma0, n_pooled = pooled_sigma0([link for link in links if link.status is not LinkStatus.PRIOR_ONLY])
+    sigma0, n_pooled = pooled_sigma0(links)
     if n_pooled and sigma0 > MODEL_TOLERANCE:
         inputs = pair_inputs(todo, dict(enumerate(stations)), dict(enumerate(planes)), matching, pairwise, static,
                              None if sigmas is None else dict(enumerate(sigmas)))
